@@ -1,0 +1,1 @@
+"""Built-in estimator plugins (installed as ``kkl_bench.estimators``)."""

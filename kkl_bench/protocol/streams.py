@@ -1,0 +1,61 @@
+"""The protocol's pinned random streams (protocol section 4).
+
+Test trajectory ``i`` of a (system, regime) cell draws, from its own
+generator and in this order: ``x0``, three regime numbers ``r``, the process
+noise and the measurement noise. Any implementation following these rules
+draws the same numbers.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from kkl_bench.protocol import PROTOCOL_VERSION
+from kkl_bench.protocol.signals import N_REGIME_NUMBERS
+
+
+def root_seed(system: str, regime: str, split: str) -> int:
+    """``zlib.crc32(b"kkl-bench/v1/<system>/<regime>/<split>")``."""
+    return zlib.crc32(f"kkl-bench/v{PROTOCOL_VERSION}/{system}/{regime}/{split}".encode())
+
+
+def trajectory_rng(root: int, index: int) -> np.random.Generator:
+    """The generator of trajectory ``index`` (0-based) under ``root``."""
+    return np.random.default_rng(np.random.SeedSequence(root, spawn_key=(index,)))
+
+
+@dataclass(frozen=True)
+class TrajectoryDraws:
+    """Everything random about one trajectory.
+
+    Attributes
+    ----------
+    x0: ``(n_x,)`` initial state.
+    r: ``(3,)`` uniform numbers the regime maps to its parameters.
+    process_noise: ``(steps - 1, n_x)`` samples ``w_k``.
+    measurement_noise: ``(steps,)`` samples ``v_k``.
+    """
+
+    x0: np.ndarray
+    r: np.ndarray
+    process_noise: np.ndarray
+    measurement_noise: np.ndarray
+
+
+def draw_trajectory(
+    rng: np.random.Generator,
+    x0_low: np.ndarray,
+    x0_high: np.ndarray,
+    steps: int,
+    sigma_w: float,
+    sigma_v: float,
+) -> TrajectoryDraws:
+    """Draw one trajectory's randomness in the protocol's order."""
+    x0 = rng.uniform(x0_low, x0_high, len(x0_low))
+    r = rng.random(N_REGIME_NUMBERS)
+    process_noise = sigma_w * rng.standard_normal((steps - 1, len(x0_low)))
+    measurement_noise = sigma_v * rng.standard_normal(steps)
+    return TrajectoryDraws(x0, r, process_noise, measurement_noise)

@@ -1,0 +1,108 @@
+"""The control-affine system model every benchmark system provides.
+
+A system is ``dx/dt = f(x) + g u(t)``, ``y = h(x)`` with one scalar input.
+``f`` and ``h`` are written with array arithmetic and indexing only, so the
+same code evaluates numpy arrays and torch tensors (see :func:`stack`): a
+learned estimator can differentiate the model with autograd, a filter can use
+the analytic Jacobians.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+
+
+def stack(components: list[Any]) -> Any:
+    """Stack same-shape arrays on a new last axis, for numpy arrays or torch tensors."""
+    first = components[0]
+    if isinstance(first, np.ndarray | float | int):
+        return np.stack(np.broadcast_arrays(*components), axis=-1)
+    import torch  # only reached when the caller passes tensors
+
+    return torch.stack(torch.broadcast_tensors(*components), dim=-1)
+
+
+class System(ABC):
+    """A control-affine benchmark system.
+
+    Subclasses set the class attributes and implement :meth:`f`,
+    :meth:`h` and their Jacobians. All methods are batched over leading axes:
+    ``x: (..., n_x)``.
+
+    Attributes
+    ----------
+    name: registry name, e.g. ``"duffing"``.
+    state_names: names of the state components, length ``n_x``.
+    g: ``(n_x,)`` input direction.
+    x0_low, x0_high: ``(n_x,)`` corners of the box initial states are drawn from.
+    """
+
+    name: ClassVar[str]
+    state_names: ClassVar[tuple[str, ...]]
+    g: ClassVar[np.ndarray]
+    x0_low: ClassVar[np.ndarray]
+    x0_high: ClassVar[np.ndarray]
+    n_y: ClassVar[int] = 1
+
+    @property
+    def n_x(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def n_z(self) -> int:
+        """KKL latent size ``n_y (2 n_x + 1)``."""
+        return self.n_y * (2 * self.n_x + 1)
+
+    @abstractmethod
+    def f(self, x):
+        """Drift. ``x: (..., n_x)`` -> ``(..., n_x)``."""
+
+    @abstractmethod
+    def h(self, x):
+        """Output. ``x: (..., n_x)`` -> ``(..., n_y)``."""
+
+    @abstractmethod
+    def f_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``df/dx``. ``x: (..., n_x)`` -> ``(..., n_x, n_x)``."""
+
+    @abstractmethod
+    def h_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``dh/dx``. ``x: (..., n_x)`` -> ``(..., n_y, n_x)``."""
+
+    def vector_field(self, x, u):
+        """``f(x) + g u``. ``x: (..., n_x)``, ``u: (...)`` -> ``(..., n_x)``."""
+        g = self.g if isinstance(x, np.ndarray) else x.new_tensor(self.g)
+        return self.f(x) + u[..., None] * g
+
+    def constrain(self, x: np.ndarray) -> np.ndarray:
+        """Map a state perturbed by process noise back into the system's domain.
+
+        The identity for most systems; see ``docs/protocol.md`` (erratum E1)
+        for the one that needs it. ``x: (..., n_x)`` -> ``(..., n_x)``.
+        """
+        return x
+
+    def params(self) -> dict[str, float]:
+        """The model's named parameters (for provenance)."""
+        return {}
+
+    def __repr__(self) -> str:
+        params = ", ".join(f"{key}={value:g}" for key, value in self.params().items())
+        return f"{type(self).__name__}({params})"
+
+
+class MeasureOneState(System, ABC):
+    """A system whose output is one state component, ``y = x[measured]``."""
+
+    measured: ClassVar[int]
+
+    def h(self, x):
+        return x[..., self.measured : self.measured + 1]
+
+    def h_jacobian(self, x: np.ndarray) -> np.ndarray:
+        jacobian = np.zeros((*x.shape[:-1], 1, self.n_x))
+        jacobian[..., 0, self.measured] = 1.0
+        return jacobian

@@ -1,0 +1,171 @@
+"""Tasks, profiles and the pinned test sets (protocol section 4).
+
+A :class:`Task` is one (system, regime) cell of the benchmark, with a
+versioned id such as ``lorenz/square@v1``. Its test set is drawn from the
+protocol's pinned random streams and carries two fingerprints:
+
+* ``stream_fingerprint`` hashes the random draws (x0, regime numbers, noise).
+  They come from numpy's PCG64 generator and are identical on every machine.
+* ``fingerprint`` hashes the simulated arrays ``t, u, x, y``. It is identical
+  wherever floating-point arithmetic (and ``numpy.sin``) round alike; the
+  chaotic systems amplify any last-bit difference, so a mismatch between two
+  machines with equal stream fingerprints points at the platform, not at the
+  protocol.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.resources
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from kkl_bench.protocol import DT, N_SAMPLES, PROTOCOL_VERSION, SIGMA_V, SIGMA_W
+from kkl_bench.protocol.metrics import state_scale
+from kkl_bench.protocol.simulate import Trajectories, simulate
+from kkl_bench.protocol.streams import draw_trajectory, root_seed, trajectory_rng
+from kkl_bench.registry import regimes, systems
+
+
+@dataclass(frozen=True)
+class Task:
+    """One benchmark cell: a system under an input regime."""
+
+    system: str
+    regime: str
+    version: int = PROTOCOL_VERSION
+
+    @property
+    def id(self) -> str:
+        return f"{self.system}/{self.regime}@v{self.version}"
+
+    def __str__(self) -> str:
+        return self.id
+
+
+@dataclass(frozen=True)
+class Profile:
+    """How many test trajectories a run scores and the training budgets it grants."""
+
+    name: str
+    description: str
+    n_test: int
+    budgets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+
+    def budget_for(self, estimator: str) -> dict[str, Any]:
+        """The default budget updated with the estimator's own table, if any."""
+        return {**self.budgets.get("default", {}), **self.budgets.get(estimator, {})}
+
+
+class ProfileError(ValueError):
+    """A profile file is malformed or names no such profile."""
+
+
+def load_profiles(text: str | None = None) -> dict[str, Profile]:
+    """Parse profiles from TOML ``text`` (default: the built-in ``tasks/profiles.toml``)."""
+    if text is None:
+        text = importlib.resources.files("kkl_bench.tasks").joinpath("profiles.toml").read_text()
+    try:
+        table = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ProfileError(f"profiles file is not valid TOML: {error}") from error
+    profiles = {}
+    for name, spec in table.items():
+        if not isinstance(spec, dict):
+            raise ProfileError(f"profile {name!r} must be a table, got {spec!r}")
+        n_test = spec.get("n_test")
+        if not isinstance(n_test, int) or isinstance(n_test, bool) or n_test < 1:
+            raise ProfileError(
+                f"profile {name!r}: n_test must be a positive integer, got {n_test!r}"
+            )
+        budgets = spec.get("budget", {})
+        if not isinstance(budgets, dict) or not all(isinstance(b, dict) for b in budgets.values()):
+            raise ProfileError(f"profile {name!r}: budget must hold one table per estimator")
+        profiles[name] = Profile(
+            name=name,
+            description=str(spec.get("description", "")),
+            n_test=n_test,
+            budgets=MappingProxyType({key: MappingProxyType(b) for key, b in budgets.items()}),
+        )
+    return profiles
+
+
+def get_profile(name: str) -> Profile:
+    """The built-in profile ``name``; the error lists the valid ones."""
+    profiles = load_profiles()
+    if name not in profiles:
+        raise ProfileError(f"unknown profile {name!r}; valid profiles: {', '.join(profiles)}")
+    return profiles[name]
+
+
+@dataclass(frozen=True)
+class TestSet:
+    """The scored trajectories of one task.
+
+    Attributes
+    ----------
+    task: the cell.
+    data: the trajectories (``x`` is the truth an estimator never sees).
+    regime_params: ``(n_test, k)`` each trajectory's regime parameters.
+    state_scale: ``(n_x,)`` steady-state standard deviation of each state over the set.
+    stream_fingerprint, fingerprint: see the module docstring.
+    """
+
+    __test__ = False  # not a pytest class
+
+    task: Task
+    data: Trajectories
+    regime_params: np.ndarray
+    state_scale: np.ndarray
+    stream_fingerprint: str
+    fingerprint: str
+
+
+def _sha256(*arrays: np.ndarray) -> str:
+    digest = hashlib.sha256()
+    for array in arrays:
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()[:16]
+
+
+@functools.lru_cache(maxsize=64)
+def make_test_set(task: Task, n_test: int) -> TestSet:
+    """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
+
+    Trajectory ``i`` is the same whatever ``n_test`` is. The result is cached
+    in memory; treat its arrays as read-only.
+    """
+    if task.version != PROTOCOL_VERSION:
+        raise ValueError(f"task {task.id}: this kkl-bench implements protocol v{PROTOCOL_VERSION}")
+    system = systems.get(task.system)()
+    regime = regimes.get(task.regime)()
+    root = root_seed(task.system, task.regime, "test")
+    draws = [
+        draw_trajectory(
+            trajectory_rng(root, i), system.x0_low, system.x0_high, N_SAMPLES, SIGMA_W, SIGMA_V
+        )
+        for i in range(n_test)
+    ]
+    x0 = np.stack([d.x0 for d in draws])
+    r = np.stack([d.r for d in draws])
+    process_noise = np.stack([d.process_noise for d in draws])
+    measurement_noise = np.stack([d.measurement_noise for d in draws])[..., None]
+    params = regime.params_from_uniform(r)
+    t = DT * np.arange(N_SAMPLES)
+    data = simulate(system, x0, regime.signal(t, params), DT, process_noise, measurement_noise)
+    for array in (data.t, data.u, data.x, data.y, params):
+        array.flags.writeable = False
+    return TestSet(
+        task=task,
+        data=data,
+        regime_params=params,
+        state_scale=state_scale(data.x),
+        stream_fingerprint=_sha256(x0, r, process_noise, measurement_noise),
+        fingerprint=_sha256(data.t, data.u, data.x, data.y),
+    )

@@ -1,0 +1,94 @@
+"""The training-data generator estimators receive in ``fit``.
+
+It simulates the system exactly as the protocol does (RK4, zero-order-hold
+input, process and measurement noise) with any input family, any number of
+trajectories and the estimator's own seed, on streams that can never coincide
+with a test stream.
+"""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+from kkl_bench.protocol import PROTOCOL_VERSION
+from kkl_bench.protocol.signals import InputFamily
+from kkl_bench.protocol.simulate import Trajectories, simulate
+from kkl_bench.protocol.system import System
+
+
+class TrainingData:
+    """Simulates training trajectories of one system.
+
+    Parameters
+    ----------
+    system: the model.
+    dt: sampling step (s).
+    n_samples: default samples per trajectory.
+    sigma_w, sigma_v: the protocol's noise levels.
+    seed: the run's seed; every stream below is derived from it.
+    """
+
+    def __init__(
+        self, system: System, dt: float, n_samples: int, sigma_w: float, sigma_v: float, seed: int
+    ) -> None:
+        self.system = system
+        self.dt = dt
+        self.n_samples = n_samples
+        self.sigma_w = sigma_w
+        self.sigma_v = sigma_v
+        self.seed = seed
+
+    def rng(self, stream: str) -> np.random.Generator:
+        """A generator for the named stream, e.g. ``"train"`` or ``"validation"``.
+
+        Streams are keyed by system, name and run seed; the protocol's test
+        streams ("test") are refused.
+        """
+        if stream == "test" or stream.endswith("/test"):
+            raise ValueError(f"stream {stream!r} is reserved for the test sets")
+        label = f"kkl-bench/v{PROTOCOL_VERSION}/{self.system.name}/{stream}/train-data"
+        return np.random.default_rng(
+            np.random.SeedSequence([zlib.crc32(label.encode()), self.seed])
+        )
+
+    def simulate(
+        self,
+        inputs: InputFamily,
+        n: int,
+        stream: str = "train",
+        n_samples: int | None = None,
+        x0_low: np.ndarray | None = None,
+        x0_high: np.ndarray | None = None,
+        noise: bool = True,
+    ) -> Trajectories:
+        """Simulate ``n`` trajectories driven by signals drawn from ``inputs``.
+
+        Parameters
+        ----------
+        inputs: any :class:`~kkl_bench.protocol.signals.InputFamily`, e.g. a registered regime.
+        n: number of trajectories.
+        stream: name of the random stream (not ``"test"``).
+        n_samples: samples per trajectory (default: the protocol's).
+        x0_low, x0_high: ``(n_x,)`` box for initial states (default: the system's x0 box).
+        noise: add the protocol's process and measurement noise.
+
+        Returns
+        -------
+        Trajectories with ``x: (n, n_samples, n_x)``, ``y: (n, n_samples, n_y)``,
+        ``u: (n, n_samples, 1)``.
+        """
+        if n < 1:
+            raise ValueError(f"n must be a positive number of trajectories, got {n}")
+        steps = self.n_samples if n_samples is None else n_samples
+        rng = self.rng(stream)
+        low = self.system.x0_low if x0_low is None else np.asarray(x0_low, dtype=float)
+        high = self.system.x0_high if x0_high is None else np.asarray(x0_high, dtype=float)
+        x0 = rng.uniform(low, high, (n, self.system.n_x))
+        u = inputs.sample(rng, n, self.dt * np.arange(steps))
+        process_noise = measurement_noise = None
+        if noise:
+            process_noise = self.sigma_w * rng.standard_normal((n, steps - 1, self.system.n_x))
+            measurement_noise = self.sigma_v * rng.standard_normal((n, steps, self.system.n_y))
+        return simulate(self.system, x0, u, self.dt, process_noise, measurement_noise)

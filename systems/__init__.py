@@ -1,0 +1,1 @@
+"""Built-in benchmark systems (installed as ``kkl_bench.systems``)."""

@@ -1,0 +1,27 @@
+"""Reverse Duffing oscillator: ``dx1 = x2^3``, ``dx2 = -x1 + u``, ``y = x1``."""
+
+import numpy as np
+
+from kkl_bench.protocol.system import MeasureOneState, stack
+from kkl_bench.registry import systems
+
+
+@systems.register("duffing")
+class ReverseDuffing(MeasureOneState):
+    name = "duffing"
+    state_names = ("x1", "x2")
+    g = np.array([0.0, 1.0])
+    x0_low = np.array([-1.0, -1.0])
+    x0_high = np.array([1.0, 1.0])
+    measured = 0
+
+    def f(self, x):
+        x1, x2 = x[..., 0], x[..., 1]
+        return stack([x2 * x2 * x2, -x1])
+
+    def f_jacobian(self, x):
+        x2 = x[..., 1]
+        jacobian = np.zeros((*x.shape, 2))
+        jacobian[..., 0, 1] = 3.0 * x2 * x2
+        jacobian[..., 1, 0] = -1.0
+        return jacobian

@@ -1,0 +1,39 @@
+"""Lorenz system: ``dx1 = p (x2 - x1) + u``, ``dx2 = x1 (q - x3) - x2``, ``dx3 = x1 x2 - r x3``, ``y = x2``."""
+
+import numpy as np
+
+from kkl_bench.protocol.system import MeasureOneState, stack
+from kkl_bench.registry import systems
+
+
+@systems.register("lorenz")
+class Lorenz(MeasureOneState):
+    name = "lorenz"
+    state_names = ("x1", "x2", "x3")
+    g = np.array([1.0, 0.0, 0.0])
+    x0_low = np.array([-1.0, -1.0, -1.0])
+    x0_high = np.array([1.0, 1.0, 1.0])
+    measured = 1
+
+    def __init__(self, p: float = 10.0, q: float = 28.0, r: float = 8.0 / 3.0) -> None:
+        self.p, self.q, self.r = p, q, r
+
+    def params(self):
+        return {"p": self.p, "q": self.q, "r": self.r}
+
+    def f(self, x):
+        x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
+        return stack([self.p * (x2 - x1), x1 * (self.q - x3) - x2, x1 * x2 - self.r * x3])
+
+    def f_jacobian(self, x):
+        x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
+        jacobian = np.zeros((*x.shape, 3))
+        jacobian[..., 0, 0] = -self.p
+        jacobian[..., 0, 1] = self.p
+        jacobian[..., 1, 0] = self.q - x3
+        jacobian[..., 1, 1] = -1.0
+        jacobian[..., 1, 2] = -x1
+        jacobian[..., 2, 0] = x2
+        jacobian[..., 2, 1] = x1
+        jacobian[..., 2, 2] = -self.r
+        return jacobian
