@@ -134,18 +134,22 @@ def _sha256(*arrays: np.ndarray) -> str:
     return digest.hexdigest()[:16]
 
 
-@functools.lru_cache(maxsize=64)
 def make_test_set(task: Task, n_test: int) -> TestSet:
     """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
 
     Trajectory ``i`` is the same whatever ``n_test`` is. The result is cached
-    in memory; treat its arrays as read-only.
+    in memory, and its arrays are read-only.
     """
+    root = root_seed(task.system, task.regime, "test")  # refused inside sealed_test_streams()
+    return _simulate_test_set(task, n_test, root)
+
+
+@functools.lru_cache(maxsize=64)
+def _simulate_test_set(task: Task, n_test: int, root: int) -> TestSet:
     if task.version != PROTOCOL_VERSION:
         raise ValueError(f"task {task.id}: this kkl-bench implements protocol v{PROTOCOL_VERSION}")
     system = systems.get(task.system)()
     regime = regimes.get(task.regime)()
-    root = root_seed(task.system, task.regime, "test")
     draws = [
         draw_trajectory(
             trajectory_rng(root, i), system.x0_low, system.x0_high, N_SAMPLES, SIGMA_W, SIGMA_V

@@ -8,7 +8,10 @@ draws the same numbers.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,9 +19,35 @@ import numpy as np
 from kkl_bench.protocol import PROTOCOL_VERSION
 from kkl_bench.protocol.signals import N_REGIME_NUMBERS
 
+_test_streams_sealed = contextvars.ContextVar("test_streams_sealed", default=False)
+
+
+class TestStreamAccessError(RuntimeError):
+    """Code that must not see the test sets asked for a test stream."""
+
+    __test__ = False  # not a pytest class
+
+
+@contextlib.contextmanager
+def sealed_test_streams() -> Iterator[None]:
+    """Within this block, asking for a test stream raises :class:`TestStreamAccessError`.
+
+    The conformance kit fits and runs estimators inside it, so an estimator
+    that peeks at the test sets fails its checks.
+    """
+    token = _test_streams_sealed.set(True)
+    try:
+        yield
+    finally:
+        _test_streams_sealed.reset(token)
+
 
 def root_seed(system: str, regime: str, split: str) -> int:
     """``zlib.crc32(b"kkl-bench/v1/<system>/<regime>/<split>")``."""
+    if split == "test" and _test_streams_sealed.get():
+        raise TestStreamAccessError(
+            f"the test stream of {system}/{regime} was requested where test data are off-limits"
+        )
     return zlib.crc32(f"kkl-bench/v{PROTOCOL_VERSION}/{system}/{regime}/{split}".encode())
 
 

@@ -1,0 +1,210 @@
+"""The ``kkl-bench`` command line: list, run, leaderboard, check.
+
+Thin by design: it parses arguments and calls the harness, the leaderboard
+and the conformance kit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from tqdm import tqdm
+
+from kkl_bench import harness, leaderboard
+from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
+from kkl_bench.results import load_results
+from kkl_bench.task import ProfileError, get_profile, load_profiles
+
+EXAMPLES = """\
+examples:
+  kkl-bench list
+  kkl-bench run --estimator ukf --profile quick
+  kkl-bench run --estimator ekf --system duffing vdp --regime sinusoid square
+  kkl-bench leaderboard --with-paper
+  kkl-bench leaderboard --format latex > table.tex
+  kkl-bench check my_estimator
+"""
+
+
+def _names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:
+    """``requested`` validated against ``registry``; ``None`` or ``all`` means every name."""
+    if not requested or list(requested) == ["all"]:
+        return tuple(registry.names())
+    for name in requested:
+        registry.get(name)  # raises an error that lists the valid names
+    return tuple(dict.fromkeys(requested))
+
+
+def _seed(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"seed must be a non-negative integer, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="kkl-bench",
+        description="Benchmark state observers of nonlinear systems driven by exogenous inputs.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    commands.add_parser("list", help="list systems, regimes, estimators and profiles")
+
+    run = commands.add_parser(
+        "run",
+        help="fit estimators and score them on the test sets",
+        description="Fit each estimator once per system, score it on every regime's test set, "
+        "and write one result file per cell. Cells already on disk are skipped (use --force).",
+    )
+    run.add_argument(
+        "--estimator", nargs="+", required=True, metavar="NAME", help="estimator names, or 'all'"
+    )
+    run.add_argument("--system", nargs="+", metavar="NAME", help="systems to run (default: all)")
+    run.add_argument(
+        "--regime", nargs="+", metavar="NAME", help="input regimes to score (default: all)"
+    )
+    run.add_argument("--profile", default="quick", help="profile: quick (default) or standard")
+    run.add_argument(
+        "--seed", type=_seed, default=0, help="seed of the estimators' training streams (default 0)"
+    )
+    run.add_argument(
+        "--results",
+        type=Path,
+        default=Path("results"),
+        metavar="DIR",
+        help="results directory (default ./results)",
+    )
+    run.add_argument(
+        "--cache",
+        type=Path,
+        default=Path(".kkl_bench_cache"),
+        metavar="DIR",
+        help="cache for trained models",
+    )
+    run.add_argument("--force", action="store_true", help="recompute cells already on disk")
+
+    board = commands.add_parser("leaderboard", help="print the leaderboard from stored results")
+    board.add_argument("--format", choices=leaderboard.FORMATS, default="markdown")
+    board.add_argument(
+        "--results",
+        type=Path,
+        default=Path("results"),
+        metavar="DIR",
+        help="results directory (default ./results)",
+    )
+    board.add_argument(
+        "--profile", help="profile to tabulate (default: standard if present, else the only one)"
+    )
+    board.add_argument(
+        "--with-paper",
+        action="store_true",
+        help="add the HyperKKL paper's numbers as reference rows",
+    )
+
+    check = commands.add_parser("check", help="run the conformance checks on an estimator")
+    check.add_argument("estimator", metavar="NAME")
+    check.add_argument("--system", default="duffing", help="system to check on (default duffing)")
+    return parser
+
+
+def _list() -> int:
+    for registry in (systems, regimes, estimators):
+        print(f"{registry.kind}s: {', '.join(registry.names())}")
+        for name, reason in registry.failures().items():
+            print(f"  (failed to load {name}: {reason})")
+    for profile in load_profiles().values():
+        print(f"profile {profile.name}: {profile.description}")
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    spec = harness.RunSpec(
+        estimators=_names(estimators, args.estimator),
+        systems=_names(systems, args.system),
+        regimes=_names(regimes, args.regime),
+        profile=get_profile(args.profile),
+        seed=args.seed,
+        results_dir=args.results,
+        cache_dir=args.cache,
+        force=args.force,
+    )
+    total = len(spec.estimators) * len(spec.systems) * len(spec.regimes)
+    with tqdm(
+        total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0
+    ) as bar:
+
+        def progress(cell, status):
+            bar.set_postfix_str(f"{cell.estimator} {cell.task}: {status}")
+            if status == "error":
+                tqdm.write(f"error in {cell.estimator} {cell.task}: {cell.error.splitlines()[-1]}")
+            bar.update()
+
+        summary = harness.run(spec, progress)
+    print(
+        f"{len(summary.scored)} cells scored, {len(summary.cached)} already done, "
+        f"{len(summary.failed)} failed; results in {spec.results_dir}/{spec.profile.name}/"
+    )
+    return 0 if summary.ok else 1
+
+
+def _leaderboard(args: argparse.Namespace) -> int:
+    results = load_results(args.results)
+    if results.empty:
+        raise ValueError(f"no results under {args.results}/; run `kkl-bench run` first")
+    profiles = sorted(set(results["profile"]))
+    profile = args.profile or ("standard" if "standard" in profiles else profiles[0])
+    if profile not in profiles:
+        raise ValueError(
+            f"no results for profile {profile!r} in {args.results}/; found: {', '.join(profiles)}"
+        )
+    if args.profile is None and len(profiles) > 1:
+        print(
+            f"(profile {profile}; results also hold {', '.join(p for p in profiles if p != profile)})",
+            file=sys.stderr,
+        )
+    summary = leaderboard.summary_table(
+        results[results["profile"] == profile], with_paper=args.with_paper
+    )
+    print(leaderboard.render(summary, args.format), end="")
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    from kkl_bench.testing import run_checks
+
+    failures = 0
+    for name, error in run_checks(args.estimator, system=args.system):
+        print(
+            f"{'PASS' if error is None else 'FAIL'} {name}"
+            + ("" if error is None else f": {error}")
+        )
+        failures += error is not None
+    return 1 if failures else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    commands = {
+        "list": lambda: _list(),
+        "run": lambda: _run(args),
+        "leaderboard": lambda: _leaderboard(args),
+        "check": lambda: _check(args),
+    }
+    try:
+        return commands[args.command]()
+    except (UnknownNameError, PluginLoadError, ProfileError, ValueError, OSError) as error:
+        print(f"kkl-bench: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("kkl-bench: interrupted; finished cells are saved", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

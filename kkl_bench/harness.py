@@ -1,0 +1,209 @@
+"""Runs estimators over the benchmark grid and records every cell as it finishes.
+
+For each (estimator, system) the harness builds the estimator, fits it once
+with a :class:`~kkl_bench.estimator.FitContext`, then scores it on the
+requested regimes' test sets. Each cell is written atomically the moment it
+is scored; a cell already on disk is skipped unless ``force`` is set. An
+estimator that raises, or returns the wrong shape, produces an ``error``
+cell and the run goes on.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from kkl_bench.estimator import Estimator, FitContext
+from kkl_bench.protocol import DT, N_SAMPLES, PROTOCOL_ID, SIGMA_V, SIGMA_W
+from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, smape
+from kkl_bench.registry import estimators, regimes, systems
+from kkl_bench.results import CellResult, cell_path, provenance, read_cell, write_cell
+from kkl_bench.task import Profile, Task, TestSet, make_test_set
+from kkl_bench.training import TrainingData
+
+WARM_UP_STEPS = 20
+"""Samples of one trajectory an estimator runs on, untimed, before it is timed."""
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What to run: the grid, the profile, the seed and where results go."""
+
+    estimators: tuple[str, ...]
+    systems: tuple[str, ...]
+    regimes: tuple[str, ...]
+    profile: Profile
+    seed: int = 0
+    results_dir: Path = Path("results")
+    cache_dir: Path = Path(".kkl_bench_cache")
+    force: bool = False
+
+    def __post_init__(self) -> None:
+        for registry, names in (
+            (estimators, self.estimators),
+            (systems, self.systems),
+            (regimes, self.regimes),
+        ):
+            if not names:
+                raise ValueError(f"no {registry.kind}s selected")
+            for name in names:
+                if name not in registry:
+                    registry.get(name)  # raises the error listing the valid names
+
+
+@dataclass
+class RunSummary:
+    """Counts of what a run did, by cell status."""
+
+    scored: list[CellResult] = field(default_factory=list)
+    cached: list[CellResult] = field(default_factory=list)
+    failed: list[CellResult] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+
+def make_fit_context(spec: RunSpec, estimator: str, system: str) -> FitContext:
+    """The context an estimator is fitted with for ``system`` under ``spec``."""
+    model = systems.get(system)()
+    return FitContext(
+        system=model,
+        dt=DT,
+        n_samples=N_SAMPLES,
+        sigma_w=SIGMA_W,
+        sigma_v=SIGMA_V,
+        training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, SIGMA_V, spec.seed),
+        seed=spec.seed,
+        profile=spec.profile.name,
+        budget=spec.profile.budget_for(estimator),
+        cache_dir=Path(spec.cache_dir),
+    )
+
+
+def score(estimator: Estimator, test_set: TestSet) -> dict:
+    """Run ``estimator`` on ``test_set`` and compute the protocol's metrics.
+
+    Returns the metric and timing fields of a :class:`CellResult`. Raises
+    ``ValueError`` if the estimate has the wrong shape.
+    """
+    data = test_set.data
+    estimator.estimate(
+        data.t[:WARM_UP_STEPS], data.y[:1, :WARM_UP_STEPS].copy(), data.u[:1, :WARM_UP_STEPS].copy()
+    )
+    start = time.perf_counter()
+    x_hat = np.asarray(estimator.estimate(data.t.copy(), data.y.copy(), data.u.copy()), dtype=float)
+    elapsed = time.perf_counter() - start
+    if x_hat.shape != data.x.shape:
+        raise ValueError(
+            f"estimate returned shape {x_hat.shape}; expected {data.x.shape} (batch, steps, n_x)"
+        )
+    return {
+        "rmse": rmse(data.x, x_hat).tolist(),
+        "smape": smape(data.x, x_hat).tolist(),
+        "nrmse": nrmse(data.x, x_hat, test_set.state_scale).tolist(),
+        "per_state_rmse": per_state_rmse(data.x, x_hat).tolist(),
+        "estimate_us_per_step": 1e6 * elapsed / (x_hat.shape[0] * x_hat.shape[1]),
+    }
+
+
+def _cell(spec: RunSpec, estimator: Estimator, name: str, task: Task, **fields) -> CellResult:
+    test_set = make_test_set(task, spec.profile.n_test)
+    return CellResult(
+        estimator=name,
+        system=task.system,
+        regime=task.regime,
+        task=task.id,
+        profile=spec.profile.name,
+        seed=spec.seed,
+        n_test=spec.profile.n_test,
+        estimator_params=estimator.get_params(),
+        protocol=PROTOCOL_ID,
+        test_set_fingerprint=test_set.fingerprint,
+        stream_fingerprint=test_set.stream_fingerprint,
+        provenance=provenance(),
+        **fields,
+    )
+
+
+def _error_text(error: BaseException) -> str:
+    return "".join(traceback.format_exception(error)).strip()
+
+
+def run_system(
+    spec: RunSpec, estimator_name: str, system: str, regime_names: Iterable[str]
+) -> Iterator[CellResult]:
+    """Fit ``estimator_name`` on ``system`` once and score it on each regime, yielding cells.
+
+    Each cell is written to ``spec.results_dir`` before it is yielded.
+    """
+    estimator = estimators.get(estimator_name)()
+    tasks = [Task(system, regime) for regime in regime_names]
+    start = time.perf_counter()
+    try:
+        estimator.fit(make_fit_context(spec, estimator_name, system))
+    except Exception as error:
+        for task in tasks:
+            cell = _cell(
+                spec,
+                estimator,
+                estimator_name,
+                task,
+                status="error",
+                error=f"fit failed: {_error_text(error)}",
+            )
+            write_cell(spec.results_dir, cell)
+            yield cell
+        return
+    fit_time = time.perf_counter() - start
+    for task in tasks:
+        try:
+            fields = {"status": "ok", **score(estimator, make_test_set(task, spec.profile.n_test))}
+        except Exception as error:
+            fields = {"status": "error", "error": f"estimate failed: {_error_text(error)}"}
+        cell = _cell(spec, estimator, estimator_name, task, fit_time_s=fit_time, **fields)
+        write_cell(spec.results_dir, cell)
+        yield cell
+
+
+def _done(spec: RunSpec, estimator: str, system: str, regime: str) -> CellResult | None:
+    path = cell_path(spec.results_dir, estimator, system, regime, spec.profile.name, spec.seed)
+    if spec.force or not path.exists():
+        return None
+    cell = read_cell(path)
+    return cell if cell.status == "ok" else None
+
+
+def run(spec: RunSpec, progress: Callable[[CellResult, str], None] | None = None) -> RunSummary:
+    """Run the whole grid of ``spec``; ``progress(cell, status)`` is called for every cell.
+
+    ``status`` is ``"cached"`` (already on disk, skipped), ``"ok"``,
+    ``"diverged"`` (scored, some trajectory diverged) or ``"error"``.
+    """
+    summary = RunSummary()
+    report = progress or (lambda cell, status: None)
+    for estimator in spec.estimators:
+        for system in spec.systems:
+            todo = []
+            for regime in spec.regimes:
+                cached = _done(spec, estimator, system, regime)
+                if cached is None:
+                    todo.append(regime)
+                else:
+                    summary.cached.append(cached)
+                    report(cached, "cached")
+            if not todo:
+                continue
+            for cell in run_system(spec, estimator, system, todo):
+                if cell.status == "ok":
+                    summary.scored.append(cell)
+                    report(cell, "diverged" if cell.n_diverged else "ok")
+                else:
+                    summary.failed.append(cell)
+                    report(cell, "error")
+    return summary

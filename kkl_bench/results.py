@@ -1,0 +1,183 @@
+"""Per-cell result records: written atomically, one JSON file per cell, loaded into pandas.
+
+A *cell* is one (estimator, system, regime, profile, seed). Its file holds the
+cell's aggregate metrics, the per-trajectory values behind them, the costs,
+and the provenance needed to reproduce it. Files are written to a temporary
+name and renamed into place, so a reader (or a crash) never sees half a file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import tempfile
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from functools import cache
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+RECORD_FORMAT = 1
+"""Version of the JSON layout below."""
+
+_PACKAGES = ("kkl-bench", "numpy", "scipy", "filterpy", "pandas", "torch")
+
+
+@dataclass
+class CellResult:
+    """Everything recorded about one scored cell.
+
+    ``status`` is ``"ok"`` (scored; some trajectories may have diverged) or
+    ``"error"`` (the estimator raised or broke the interface; ``error`` says
+    how and the metric fields are empty).
+    """
+
+    estimator: str
+    system: str
+    regime: str
+    task: str
+    profile: str
+    seed: int
+    status: str
+    n_test: int
+    estimator_params: dict[str, Any] = field(default_factory=dict)
+    rmse: list[float] = field(default_factory=list)
+    smape: list[float] = field(default_factory=list)
+    nrmse: list[float] = field(default_factory=list)
+    per_state_rmse: list[list[float]] = field(default_factory=list)
+    fit_time_s: float = math.nan
+    estimate_us_per_step: float = math.nan
+    error: str = ""
+    protocol: str = ""
+    test_set_fingerprint: str = ""
+    stream_fingerprint: str = ""
+    provenance: dict[str, Any] = field(default_factory=dict)
+    record_format: int = RECORD_FORMAT
+
+    @property
+    def n_diverged(self) -> int:
+        return sum(not math.isfinite(value) for value in self.rmse)
+
+
+def cell_path(
+    results_dir: Path, estimator: str, system: str, regime: str, profile: str, seed: int
+) -> Path:
+    """Where a cell's record lives under ``results_dir``."""
+    return Path(results_dir) / profile / estimator / system / f"{regime}-seed{seed}.json"
+
+
+def write_cell(results_dir: Path, cell: CellResult) -> Path:
+    """Write ``cell`` atomically; returns its path."""
+    path = cell_path(results_dir, cell.estimator, cell.system, cell.regime, cell.profile, cell.seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(_to_json(asdict(cell)), indent=1, allow_nan=False)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "w") as file:
+            file.write(text)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_cell(path: Path) -> CellResult:
+    """Load one record written by :func:`write_cell`."""
+    return CellResult(**_from_json(json.loads(Path(path).read_text())))
+
+
+def load_results(results_dir: Path) -> pd.DataFrame:
+    """Every cell under ``results_dir`` as one row (per-trajectory values as list columns).
+
+    Columns: the :class:`CellResult` fields, plus ``rmse_mean``, ``rmse_std``,
+    ``smape_mean``, ``smape_std``, ``nrmse_mean``, ``nrmse_std`` and
+    ``n_diverged``. The means are ``inf`` when any trajectory diverged.
+    """
+    rows = []
+    for path in sorted(Path(results_dir).glob("*/*/*/*.json")):
+        cell = read_cell(path)
+        row = asdict(cell)
+        for metric in ("rmse", "smape", "nrmse"):
+            values = pd.Series(row[metric], dtype=float)
+            row[f"{metric}_mean"] = values.mean() if len(values) else math.nan
+            row[f"{metric}_std"] = values.std(ddof=0) if len(values) else math.nan
+        row["n_diverged"] = cell.n_diverged
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def trajectory_table(results: pd.DataFrame) -> pd.DataFrame:
+    """Long format: one row per scored test trajectory (identity columns + metrics)."""
+    scored = results[results["status"] == "ok"]
+    identity = ["estimator", "system", "regime", "profile", "seed"]
+    long = scored[[*identity, "rmse", "smape", "nrmse"]].explode(["rmse", "smape", "nrmse"])
+    long["trajectory"] = long.groupby(identity).cumcount()
+    return long.astype({"rmse": float, "smape": float, "nrmse": float}).reset_index(drop=True)
+
+
+def provenance() -> dict[str, Any]:
+    """Package versions, git commit, Python, platform and the time of writing."""
+    return {**_static_provenance(), "written_at": datetime.now(UTC).isoformat(timespec="seconds")}
+
+
+@cache
+def _static_provenance() -> dict[str, Any]:
+    versions = {}
+    for package in _PACKAGES:
+        try:
+            versions[package] = version(package)
+        except PackageNotFoundError:
+            continue
+    return {
+        "versions": versions,
+        "git_commit": _git_commit(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
+
+
+def _git_commit() -> str | None:
+    """The checkout's commit (with ``-dirty`` if modified), or None outside a git checkout."""
+    source = Path(__file__).resolve().parent
+    try:
+        described = subprocess.run(
+            ["git", "describe", "--always", "--dirty", "--abbrev=12"],
+            cwd=source,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return described.stdout.strip() or None
+
+
+# JSON has no inf/nan: they are stored as the strings "inf", "-inf", "nan".
+def _to_json(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {key: _to_json(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_to_json(item) for item in value]
+    return value
+
+
+def _from_json(value: Any) -> Any:
+    if value in ("inf", "-inf", "nan"):
+        return float(value)
+    if isinstance(value, dict):
+        return {key: _from_json(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_from_json(item) for item in value]
+    return value
