@@ -14,10 +14,12 @@ from __future__ import annotations
 import importlib.resources
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import pandas as pd
 from tabulate import tabulate
+
+from kkl_bench.results import mean_and_std
 
 FORMATS = ("markdown", "latex", "csv")
 PAPER_PREFIX = "paper:"
@@ -47,9 +49,8 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
     rows = []
     for (estimator, system, regime), cells in results.groupby(columns, sort=False):
         scored = cells[cells["status"] == "ok"]
-        rmse = pd.Series([v for values in scored["rmse"] for v in values], dtype=float)
-        smape = pd.Series([v for values in scored["smape"] for v in values], dtype=float)
-        nrmse = pd.Series([v for values in scored["nrmse"] for v in values], dtype=float)
+        rmse = [value for values in scored["rmse"] for value in values]
+        rmse_mean, rmse_std = mean_and_std(rmse)
         rows.append(
             {
                 "estimator": estimator,
@@ -57,11 +58,11 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
                 "regime": regime,
                 "status": "ok" if len(scored) == len(cells) else "error",
                 "n_test": len(rmse),
-                "n_diverged": int((~rmse.map(math.isfinite)).sum()),
-                "rmse_mean": rmse.mean(),
-                "rmse_std": rmse.std(ddof=0),
-                "smape_mean": smape.mean(),
-                "nrmse_mean": nrmse.mean(),
+                "n_diverged": sum(not math.isfinite(value) for value in rmse),
+                "rmse_mean": rmse_mean,
+                "rmse_std": rmse_std,
+                "smape_mean": mean_and_std([v for values in scored["smape"] for v in values])[0],
+                "nrmse_mean": mean_and_std([v for values in scored["nrmse"] for v in values])[0],
                 "fit_time_s": scored["fit_time_s"].mean(),
                 "estimate_us_per_step": scored["estimate_us_per_step"].mean(),
                 "task": cells["task"].iloc[0],
@@ -96,7 +97,9 @@ def _grid(
     estimators = list(dict.fromkeys(summary["estimator"]))
     indexed = summary.set_index(["estimator", "system", "regime"])
     header = ["Estimator"] + [
-        f"{SYSTEM_TITLES.get(s, s)} {REGIME_TITLES.get(r, r)}" for s in systems for r in regimes
+        escape(f"{SYSTEM_TITLES.get(s, s)} {REGIME_TITLES.get(r, r)}")
+        for s in systems
+        for r in regimes
     ]
     best = {}
     for system in systems:
@@ -111,7 +114,7 @@ def _grid(
                 best[system, regime] = column["rmse_mean"].min()
     rows = []
     for estimator in estimators:
-        row = [estimator]
+        row = [escape(estimator)]
         for system in systems:
             for regime in regimes:
                 key = (estimator, system, regime)
@@ -156,13 +159,19 @@ def render(summary: pd.DataFrame, fmt: str = "markdown", systems_per_table: int 
             header, rows = _grid(summary, group, regimes, ("**", "**"))
             tables.append(tabulate(rows, headers=header, tablefmt="github", disable_numparse=True))
         else:
-            header, rows = _grid(summary, group, regimes, (r"\textbf{", "}"))
+            header, rows = _grid(summary, group, regimes, (r"\textbf{", "}"), _latex_escape)
             tables.append(
                 _booktabs(
                     tabulate(rows, headers=header, tablefmt="latex_raw", disable_numparse=True)
                 )
             )
     return "\n\n".join(tables) + "\n"
+
+
+def _latex_escape(text: str) -> str:
+    for character in "&%$#_{}":
+        text = text.replace(character, "\\" + character)
+    return text
 
 
 def _booktabs(latex: str) -> str:

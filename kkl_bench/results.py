@@ -107,12 +107,21 @@ def load_results(results_dir: Path) -> pd.DataFrame:
         cell = read_cell(path)
         row = asdict(cell)
         for metric in ("rmse", "smape", "nrmse"):
-            values = pd.Series(row[metric], dtype=float)
-            row[f"{metric}_mean"] = values.mean() if len(values) else math.nan
-            row[f"{metric}_std"] = values.std(ddof=0) if len(values) else math.nan
+            row[f"{metric}_mean"], row[f"{metric}_std"] = mean_and_std(row[metric])
         row["n_diverged"] = cell.n_diverged
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def mean_and_std(values: list[float]) -> tuple[float, float]:
+    """Mean and population standard deviation; ``(inf, inf)`` if any value is not finite,
+    ``(nan, nan)`` for no values."""
+    if not values:
+        return math.nan, math.nan
+    if not all(math.isfinite(value) for value in values):
+        return math.inf, math.inf
+    series = pd.Series(values, dtype=float)
+    return series.mean(), series.std(ddof=0)
 
 
 def trajectory_table(results: pd.DataFrame) -> pd.DataFrame:

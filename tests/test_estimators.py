@@ -1,0 +1,68 @@
+"""Every registered estimator passes the conformance kit; the filters are accurate on easy cases."""
+
+import numpy as np
+import pytest
+
+from kkl_bench.estimator import Estimator, NotFittedError
+from kkl_bench.harness import RunSpec, make_fit_context, score
+from kkl_bench.registry import estimators
+from kkl_bench.task import Task, get_profile, make_test_set
+from kkl_bench.testing import Conformance, check_estimator
+
+_conformance = {}
+
+
+def conformance(name):
+    if name not in _conformance:
+        _conformance[name] = Conformance(name)
+    return _conformance[name]
+
+
+CHECK_NAMES = [name for name, _ in Conformance("ekf").checks()]
+
+
+@pytest.mark.parametrize("check", CHECK_NAMES)
+@pytest.mark.parametrize("name", estimators.names())
+def test_conformance(name, check):
+    getattr(conformance(name), check)()
+
+
+@pytest.mark.parametrize("name", ["ekf", "ukf"])
+@pytest.mark.parametrize("system", ["duffing", "vdp"])
+def test_filters_track_an_easy_case(name, system):
+    spec = RunSpec((name,), (system,), ("sinusoid",), get_profile("quick"))
+    estimator = estimators.get(name)().fit(make_fit_context(spec, name, system))
+    fields = score(estimator, make_test_set(Task(system, "sinusoid"), 5))
+    # the noise floor is ~0.01-0.03 here; a filter that does not track is at 0.3 and more
+    assert max(fields["rmse"]) < 0.05
+
+
+def test_estimate_before_fit_is_a_clear_error():
+    with pytest.raises(NotFittedError, match="ExtendedKalman is not fitted"):
+        estimators.get("ekf")().estimate(np.arange(3.0), np.zeros((1, 3, 1)), np.zeros((1, 3, 1)))
+
+
+class PeeksAtTheTestSet(Estimator):
+    def estimate(self, t, y, u):
+        return np.asarray(make_test_set(Task("duffing", "zero"), 5).data.x[: len(y), : len(t)])
+
+
+class NotCausal(Estimator):
+    def fit(self, context):
+        self.n_x_ = context.system.n_x
+        return super().fit(context)
+
+    def estimate(self, t, y, u):
+        return np.repeat(y.mean(axis=1, keepdims=True), len(t), axis=1).repeat(self.n_x_, axis=2)
+
+
+def test_conformance_kit_catches_a_peeking_estimator():
+    with pytest.raises(
+        AssertionError, match="check_does_not_read_test_sets: TestStreamAccessError"
+    ):
+        check_estimator(PeeksAtTheTestSet())
+
+
+def test_conformance_kit_catches_a_non_causal_estimator():
+    with pytest.raises(AssertionError, match="check_causal"):
+        check_estimator(NotCausal())

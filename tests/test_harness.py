@@ -1,0 +1,94 @@
+"""The harness records failures as cells, keeps going, and skips finished cells."""
+
+import numpy as np
+
+from kkl_bench.estimator import Estimator
+from kkl_bench.harness import RunSpec, run
+from kkl_bench.results import load_results
+from kkl_bench.task import get_profile
+
+
+class CentreOfBox(Estimator):
+    """Always the centre of the x0 box; optionally broken in a chosen way."""
+
+    def __init__(self, failure: str = "") -> None:
+        self.failure = failure
+
+    def fit(self, context):
+        if self.failure == "fit":
+            raise RuntimeError("cannot fit")
+        return super().fit(context)
+
+    def estimate(self, t, y, u):
+        system = self.check_fitted().system
+        if self.failure == "estimate" and u.any():
+            raise RuntimeError("cannot handle inputs")
+        shape = (len(y), len(t), system.n_x - (self.failure == "shape"))
+        x_hat = np.broadcast_to((system.x0_low + system.x0_high)[: shape[-1]] / 2, shape).copy()
+        if self.failure == "nan":
+            x_hat[0, -1, 0] = np.nan
+        return x_hat
+
+
+def spec_for(name, tmp_path, **overrides):
+    return RunSpec(
+        estimators=(name,),
+        systems=("duffing",),
+        regimes=("zero", "sinusoid"),
+        profile=get_profile("quick"),
+        results_dir=tmp_path,
+        **overrides,
+    )
+
+
+def variant(failure):
+    return type(
+        f"CentreOfBox_{failure or 'ok'}",
+        (CentreOfBox,),
+        {"__init__": lambda self, failure=failure: CentreOfBox.__init__(self, failure)},
+    )
+
+
+def test_a_raising_estimate_fails_its_cell_only(tmp_path, register_estimator):
+    register_estimator("centre_estimate", variant("estimate"))
+    summary = run(spec_for("centre_estimate", tmp_path))
+    assert [cell.regime for cell in summary.scored] == ["zero"]
+    assert [cell.regime for cell in summary.failed] == ["sinusoid"]
+    assert "RuntimeError: cannot handle inputs" in summary.failed[0].error
+    assert not summary.ok
+    assert set(load_results(tmp_path)["status"]) == {"ok", "error"}
+
+
+def test_a_failing_fit_fails_every_regime(tmp_path, register_estimator):
+    register_estimator("centre_fit", variant("fit"))
+    summary = run(spec_for("centre_fit", tmp_path))
+    assert len(summary.failed) == 2 and all("fit failed" in cell.error for cell in summary.failed)
+
+
+def test_a_wrong_shape_is_an_error_naming_the_shapes(tmp_path, register_estimator):
+    register_estimator("centre_shape", variant("shape"))
+    summary = run(spec_for("centre_shape", tmp_path))
+    assert "estimate returned shape (5, 1001, 1); expected (5, 1001, 2)" in summary.failed[0].error
+
+
+def test_nan_estimates_are_scored_as_diverged(tmp_path, register_estimator):
+    register_estimator("centre_nan", variant("nan"))
+    summary = run(spec_for("centre_nan", tmp_path))
+    assert summary.ok and all(cell.n_diverged == 1 for cell in summary.scored)
+
+
+def test_finished_cells_are_skipped_and_force_redoes_them(tmp_path, register_estimator):
+    register_estimator("centre_ok", variant(""))
+    first = run(spec_for("centre_ok", tmp_path))
+    again = run(spec_for("centre_ok", tmp_path))
+    forced = run(spec_for("centre_ok", tmp_path, force=True))
+    assert (len(first.scored), len(again.scored), len(again.cached), len(forced.scored)) == (
+        2,
+        0,
+        2,
+        2,
+    )
+    cell = first.scored[0]
+    assert cell.protocol == "v1+E1" and len(cell.test_set_fingerprint) == 16
+    assert cell.provenance["versions"]["numpy"] == np.__version__
+    assert cell.estimator_params == {"failure": ""}

@@ -1,0 +1,106 @@
+"""The generic registry: decorator, entry-point discovery (with metadata fakes), errors."""
+
+import importlib.metadata
+import sys
+import textwrap
+
+import pytest
+
+from kkl_bench import registry as registry_module
+from kkl_bench.registry import (
+    PluginLoadError,
+    Registry,
+    UnknownNameError,
+    estimators,
+    regimes,
+    systems,
+)
+
+
+@pytest.fixture
+def plugin_package(tmp_path, monkeypatch):
+    """A throwaway importable module with one good and one broken plugin."""
+    (tmp_path / "throwaway_plugin.py").write_text(
+        textwrap.dedent(
+            """
+            class Good:
+                pass
+            """
+        )
+    )
+    (tmp_path / "broken_plugin.py").write_text("raise RuntimeError('missing dependency xyz')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield
+    sys.modules.pop("throwaway_plugin", None)
+    sys.modules.pop("broken_plugin", None)
+
+
+def fake_entry_points(*points):
+    def entry_points(group):
+        return [point for point in points if point.group == group]
+
+    return entry_points
+
+
+def test_entry_point_plugins_load_lazily_and_a_broken_one_spares_the_rest(
+    plugin_package, monkeypatch
+):
+    group = "kkl_bench.test_kind"
+    monkeypatch.setattr(
+        registry_module.importlib.metadata,
+        "entry_points",
+        fake_entry_points(
+            importlib.metadata.EntryPoint("good", "throwaway_plugin:Good", group),
+            importlib.metadata.EntryPoint("broken", "broken_plugin:Thing", group),
+        ),
+    )
+    registry = Registry("widget", group)
+    assert registry.names() == ["broken", "good"]
+    assert "throwaway_plugin" not in sys.modules  # nothing imported yet
+    assert registry.get("good").__name__ == "Good"
+    with (
+        pytest.warns(UserWarning, match="widget plugin 'broken' failed to load"),
+        pytest.raises(PluginLoadError, match="missing dependency xyz"),
+    ):
+        registry.get("broken")
+    assert registry.names() == ["good"]
+    assert "missing dependency xyz" in registry.failures()["broken"]
+    with pytest.raises(PluginLoadError, match="failed to load"):  # reported again, not re-imported
+        registry.get("broken")
+
+
+def test_decorator_registers_and_refuses_silent_replacement():
+    registry = Registry("widget", "kkl_bench.nothing_here")
+
+    @registry.register("a")
+    class A:
+        pass
+
+    assert registry.get("a") is A
+    registry.register("a")(A)  # the same object again is fine
+    with pytest.raises(ValueError, match="already registered"):
+        registry.register("a")(type("B", (), {}))
+
+
+def test_unknown_name_lists_valid_names_and_suggests():
+    with pytest.raises(
+        UnknownNameError,
+        match=r"unknown system 'lorentz'; valid systems: duffing, lorenz, rossler, vdp \(did you mean 'lorenz'\?\)",
+    ):
+        systems.get("lorentz")
+
+
+def test_builtins_are_discovered_through_their_entry_points():
+    """The built-ins are declared as entry points of the installed distribution."""
+    declared = {
+        point.name for point in importlib.metadata.entry_points(group="kkl_bench.estimators")
+    }
+    assert {"ekf", "ukf"} <= declared
+    assert {point.name for point in importlib.metadata.entry_points(group="kkl_bench.systems")} >= {
+        "duffing",
+        "vdp",
+        "rossler",
+        "lorenz",
+    }
+    assert regimes.names() == ["constant", "sinusoid", "square", "zero"]
+    assert {"ekf", "ukf"} <= set(estimators.names())
