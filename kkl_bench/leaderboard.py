@@ -91,9 +91,13 @@ def _format_cell(row: pd.Series, best: bool, bold: tuple[str, str]) -> str:
 
 
 def _grid(
-    summary: pd.DataFrame, systems: Sequence[str], regimes: Sequence[str], bold: tuple[str, str]
+    summary: pd.DataFrame,
+    systems: Sequence[str],
+    regimes: Sequence[str],
+    bold: tuple[str, str],
+    escape: Callable[[str], str] = str,
 ) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of one table over ``systems`` x ``regimes``."""
+    """Header and rows of one table over ``systems`` x ``regimes``; ``escape`` quotes labels."""
     estimators = list(dict.fromkeys(summary["estimator"]))
     indexed = summary.set_index(["estimator", "system", "regime"])
     header = ["Estimator"] + [
