@@ -105,6 +105,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="add the HyperKKL paper's numbers as reference rows",
     )
+    board.add_argument(
+        "--details",
+        action="store_true",
+        help="append fit time, estimation cost and NRMSE per estimator and system (markdown)",
+    )
 
     check = commands.add_parser("check", help="run the conformance checks on an estimator")
     check.add_argument("estimator", metavar="NAME")
@@ -171,6 +176,8 @@ def _leaderboard(args: argparse.Namespace) -> int:
         results[results["profile"] == profile], with_paper=args.with_paper
     )
     print(leaderboard.render(summary, args.format), end="")
+    if args.details:
+        print("\n" + leaderboard.cost_table(summary))
     return 0
 
 

@@ -135,21 +135,21 @@ def _sha256(*arrays: np.ndarray) -> str:
 
 
 def make_test_set(task: Task, n_test: int) -> TestSet:
+    """:func:`build_test_set`, cached in memory (its arrays are read-only)."""
+    root_seed(task.system, task.regime, "test")  # refused inside sealed_test_streams()
+    return _cached_test_set(task, n_test)
+
+
+def build_test_set(task: Task, n_test: int) -> TestSet:
     """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
 
-    Trajectory ``i`` is the same whatever ``n_test`` is. The result is cached
-    in memory, and its arrays are read-only.
+    Trajectory ``i`` is the same whatever ``n_test`` is.
     """
-    root = root_seed(task.system, task.regime, "test")  # refused inside sealed_test_streams()
-    return _simulate_test_set(task, n_test, root)
-
-
-@functools.lru_cache(maxsize=64)
-def _simulate_test_set(task: Task, n_test: int, root: int) -> TestSet:
     if task.version != PROTOCOL_VERSION:
         raise ValueError(f"task {task.id}: this kkl-bench implements protocol v{PROTOCOL_VERSION}")
     system = systems.get(task.system)()
     regime = regimes.get(task.regime)()
+    root = root_seed(task.system, task.regime, "test")
     draws = [
         draw_trajectory(
             trajectory_rng(root, i), system.x0_low, system.x0_high, N_SAMPLES, SIGMA_W, SIGMA_V
@@ -173,3 +173,6 @@ def _simulate_test_set(task: Task, n_test: int, root: int) -> TestSet:
         stream_fingerprint=_sha256(x0, r, process_noise, measurement_noise),
         fingerprint=_sha256(data.t, data.u, data.x, data.y),
     )
+
+
+_cached_test_set = functools.lru_cache(maxsize=64)(build_test_set)

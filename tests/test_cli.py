@@ -23,8 +23,9 @@ def test_run_then_leaderboard(tmp_path, capsys):
     assert "2 cells scored, 0 already done, 0 failed" in capsys.readouterr().out
     assert main(args) == 0
     assert "0 cells scored, 2 already done" in capsys.readouterr().out
-    assert main(["leaderboard", "--results", results]) == 0
+    assert main(["leaderboard", "--results", results, "--details"]) == 0
     table = capsys.readouterr().out
+    assert "| Estimator   | System   |   Fit time (s) |" in table
     assert "| Estimator   | Van der Pol Zero   | Van der Pol Sqr   |" in table
     assert table.count("| ekf ") == 1
     assert main(["leaderboard", "--results", results, "--format", "latex", "--with-paper"]) == 0
