@@ -1,0 +1,267 @@
+"""Phase 1: the autonomous KKL observer every KKL plugin starts from.
+
+1. Choose the latent rates: for each candidate range, train a small decoder
+   on observer data and keep the range with the lowest validation RMSE
+   (validation trajectories come from their own training stream).
+2. Train the encoder ``T`` on settled pairs ``(x, z)`` plus ``pde_weight``
+   times the autonomous PDE residual ``dT/dx f - A T - B h`` at jittered
+   states (JVP; residual in normalized latent units, divided by the RMS
+   normalized vector field).
+3. Freeze ``T``; train the decoder ``T*`` on the observer's own latent states
+   over the scored window (what it sees at test time) plus ``(T(x), x)``
+   at the same jittered states.
+
+The result is cached under a key of everything that determines it, so the
+four KKL plugins (and reruns) share one Phase-1 model per system and seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from kkl_bench.estimator import FitContext
+from kkl_bench.kkl.cache import CheckpointCache
+from kkl_bench.kkl.data import ObserverData, burn_in_steps, observer_data
+from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
+from kkl_bench.kkl.networks import NormalizedMLP
+from kkl_bench.kkl.optimize import minimize
+from kkl_bench.kkl.pde import pde_residual
+from kkl_bench.protocol import PROTOCOL_ID
+from kkl_bench.protocol.signals import InputFamily
+from kkl_bench.registry import regimes
+
+TOOLKIT_VERSION = 1
+"""Bump when a change to this module changes what a given configuration trains."""
+
+RATE_CANDIDATES = ((1.0, 5.0), (2.0, 10.0), (5.0, 20.0), (10.0, 40.0))
+"""Candidate (slowest, fastest) latent rates in 1/s, geometrically spaced over n_z."""
+
+
+@dataclass(frozen=True)
+class Phase1Config:
+    """Everything that determines a Phase-1 model (with the system, seed and protocol).
+
+    Budget keys read from the profile: ``hidden`` (a number, or a table by
+    system name with a ``default``), ``depth``, ``train_trajectories``,
+    ``encoder_steps``, ``decoder_steps``, ``selection_steps``, ``batch``.
+    """
+
+    hidden: int = 64
+    depth: int = 3
+    train_trajectories: int = 32
+    encoder_steps: int = 2000
+    decoder_steps: int = 2000
+    selection_steps: int = 500
+    batch: int = 1024
+    pde_weight: float = 1.0
+    rate_candidates: tuple[tuple[float, float], ...] = RATE_CANDIDATES
+    jitter: float = 0.02
+
+    @classmethod
+    def from_context(cls, context: FitContext, **overrides) -> Phase1Config:
+        budget = dict(context.budget)
+        hidden = budget.get("hidden", cls.hidden)
+        if isinstance(hidden, dict):
+            hidden = hidden.get(context.system.name, hidden.get("default", cls.hidden))
+        known = {
+            key: budget[key]
+            for key in cls.__dataclass_fields__
+            if key in budget and key != "hidden"
+        }
+        return cls(**{**known, "hidden": int(hidden), **overrides})
+
+
+@dataclass
+class AutonomousModel:
+    """A trained autonomous KKL observer: latent observer, encoder ``T``, decoder ``T*``."""
+
+    rates: np.ndarray
+    observer: LatentObserver
+    encoder: NormalizedMLP
+    decoder: NormalizedMLP
+    selection: dict[str, float] = field(default_factory=dict)
+
+    def decode(self, z: np.ndarray) -> np.ndarray:
+        """``T*(z)``: ``z: (..., n_z)`` -> ``(..., n_x)`` (float64 numpy)."""
+        with torch.no_grad():
+            return self.decoder(torch.as_tensor(z, dtype=torch.float32)).double().numpy()
+
+    def estimate(self, y: np.ndarray) -> np.ndarray:
+        """Input-ignoring estimates ``(batch, steps, n_x)`` from ``y: (batch, steps, n_y)``."""
+        return self.decode(self.observer.run(y))
+
+
+def _networks(n_x: int, n_z: int, config: Phase1Config) -> tuple[NormalizedMLP, NormalizedMLP]:
+    return NormalizedMLP(n_x, n_z, config.hidden, config.depth), NormalizedMLP(
+        n_z, n_x, config.hidden, config.depth
+    )
+
+
+def _tensor(array: np.ndarray) -> torch.Tensor:
+    return torch.as_tensor(array, dtype=torch.float32)
+
+
+def train_decoder(
+    decoder: NormalizedMLP,
+    z: torch.Tensor,
+    x: torch.Tensor,
+    steps: int,
+    batch: int,
+    generator: torch.Generator,
+    description: str,
+    extra: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> list[float]:
+    """Fit ``decoder`` to pairs ``z -> x`` (and ``extra`` pairs) in normalized state units."""
+
+    def loss(_):
+        rows = torch.randint(len(z), (batch,), generator=generator)
+        error = (decoder(z[rows]) - x[rows]) / decoder.out_std
+        total = error.pow(2).sum(-1).mean()
+        if extra is not None:
+            extra_z, extra_x = extra
+            rows = torch.randint(len(extra_z), (batch,), generator=generator)
+            total = (
+                total
+                + ((decoder(extra_z[rows]) - extra_x[rows]) / decoder.out_std).pow(2).sum(-1).mean()
+            )
+        return total
+
+    return minimize(loss, decoder.parameters(), steps, description=description)
+
+
+def _select_rates(
+    context: FitContext, config: Phase1Config, train_inputs: InputFamily, generator: torch.Generator
+) -> tuple[np.ndarray, dict[str, float]]:
+    """The candidate rate range with the lowest validation RMSE of a briefly trained decoder."""
+    system = context.system
+    scores = {}
+    best = None
+    for slowest, fastest in config.rate_candidates:
+        rates = spread_eigenvalues(system.n_z, slowest, fastest)
+        observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
+        train = observer_data(
+            context, observer, train_inputs, config.train_trajectories, "kkl/select"
+        )
+        validation = observer_data(
+            context,
+            observer,
+            train_inputs,
+            max(4, config.train_trajectories // 4),
+            "kkl/validation",
+        )
+        x, z = (_tensor(a) for a in train.scored())
+        decoder = NormalizedMLP(system.n_z, system.n_x, config.hidden, config.depth)
+        decoder.set_normalization(z, x)
+        train_decoder(
+            decoder,
+            z,
+            x,
+            config.selection_steps,
+            config.batch,
+            generator,
+            f"{system.name}: rates {slowest:g}-{fastest:g}",
+        )
+        x_val, z_val = validation.scored()
+        with torch.no_grad():
+            rmse = float(np.sqrt(np.mean((decoder(_tensor(z_val)).double().numpy() - x_val) ** 2)))
+        scores[f"{slowest:g}-{fastest:g}"] = rmse
+        if best is None or rmse < best[0]:
+            best = (rmse, rates)
+    return best[1], scores
+
+
+def _train_encoder(
+    context: FitContext,
+    config: Phase1Config,
+    encoder: NormalizedMLP,
+    data: ObserverData,
+    rates: np.ndarray,
+    generator: torch.Generator,
+) -> torch.Tensor:
+    """Fit ``T`` to settled pairs plus the PDE; returns the jittered collocation states."""
+    system = context.system
+    x, z = (_tensor(a) for a in data.settled(burn_in_steps(rates, context.dt)))
+    encoder.set_normalization(x, z)
+    a, b = (_tensor(m) for m in latent_matrices(rates, system.n_y))
+    collocation = x + config.jitter * x.std(0) * torch.randn(x.shape, generator=generator)
+    vector_field = system.f(collocation)
+    h_collocation = system.h(collocation)
+    field_scale = (
+        (vector_field / encoder.in_std).pow(2).sum(-1).mean().sqrt() * encoder.out_std
+    ).clamp_min(1e-6)
+
+    def loss(_):
+        rows = torch.randint(len(x), (config.batch,), generator=generator)
+        data_term = ((encoder(x[rows]) - z[rows]) / encoder.out_std).pow(2).sum(-1).mean()
+        points = torch.randint(len(collocation), (config.batch,), generator=generator)
+        residual = pde_residual(
+            encoder, collocation[points], vector_field[points], h_collocation[points], a, b
+        )
+        return data_term + config.pde_weight * (residual / field_scale).pow(2).sum(-1).mean()
+
+    minimize(
+        loss, encoder.parameters(), config.encoder_steps, description=f"{system.name}: encoder T"
+    )
+    return collocation
+
+
+def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel:
+    """Train (or load from the cache) the Phase-1 model for ``context.system``."""
+    system = context.system
+    description = {
+        "kind": "kkl-phase1",
+        "toolkit": TOOLKIT_VERSION,
+        "protocol": PROTOCOL_ID,
+        "system": system.name,
+        "system_params": system.params(),
+        "seed": context.seed,
+        "config": asdict(config),
+    }
+    cache = CheckpointCache(context.cache_dir)
+    with torch.random.fork_rng():
+        torch.manual_seed(context.seed)
+        encoder, decoder = _networks(system.n_x, system.n_z, config)
+    stored = cache.load("kkl-phase1", description)
+    if stored is not None:
+        encoder.load_state_dict(stored["encoder"])
+        decoder.load_state_dict(stored["decoder"])
+        rates = stored["rates"].numpy()
+        selection = dict(stored["selection"])
+    else:
+        generator = torch.Generator().manual_seed(context.seed)
+        unforced = regimes.get("zero")()
+        rates, selection = _select_rates(context, config, unforced, generator)
+        observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
+        data = observer_data(context, observer, unforced, config.train_trajectories, "kkl/phase1")
+        collocation = _train_encoder(context, config, encoder, data, rates, generator)
+        x, z = (_tensor(a) for a in data.scored())
+        decoder.set_normalization(z, x)
+        with torch.no_grad():
+            encoded = encoder(collocation)
+        train_decoder(
+            decoder,
+            z,
+            x,
+            config.decoder_steps,
+            config.batch,
+            generator,
+            f"{system.name}: decoder T*",
+            extra=(encoded, collocation),
+        )
+        cache.save(
+            "kkl-phase1",
+            description,
+            {
+                "encoder": encoder.state_dict(),
+                "decoder": decoder.state_dict(),
+                "rates": torch.as_tensor(rates),
+                "selection": selection,
+            },
+        )
+    for network in (encoder, decoder):
+        network.requires_grad_(False)
+    observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
+    return AutonomousModel(rates, observer, encoder, decoder, selection)

@@ -1,0 +1,34 @@
+"""The KKL PDE residual ``dT/dx(x) v - A T(x) - B h(x)``, by one Jacobian-vector product.
+
+``v`` is the vector field: ``f(x)`` for the autonomous PDE, ``f(x) + g u``
+for the forced one. The directional derivative ``dT/dx(x) v`` is one
+forward-mode JVP through the encoder (``torch.func.jvp``), never a full
+per-sample Jacobian; parameter gradients flow through it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch.func import jvp
+
+
+def directional_derivative(
+    encoder: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, v: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(T(x), dT/dx(x) v)`` for ``x, v: (..., n_x)``."""
+    return jvp(encoder, (x,), (v,))
+
+
+def pde_residual(
+    encoder: Callable[[torch.Tensor], torch.Tensor],
+    x: torch.Tensor,
+    v: torch.Tensor,
+    h_x: torch.Tensor,
+    a: torch.Tensor,
+    b: torch.Tensor,
+) -> torch.Tensor:
+    """``dT/dx(x) v - A T(x) - B h(x)``: ``x, v: (..., n_x)``, ``h_x: (..., n_y)`` -> ``(..., n_z)``."""
+    t_x, dt_v = directional_derivative(encoder, x, v)
+    return dt_v - t_x @ a.T - h_x @ b.T
