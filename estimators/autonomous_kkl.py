@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from kkl_bench.estimator import Estimator
 from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous
+from kkl_bench.kkl.config import from_budget
 from kkl_bench.registry import estimators
 
 
@@ -23,7 +24,7 @@ class AutonomousKKL(Estimator):
 
     def fit(self, context):
         self.model_ = fit_autonomous(
-            context, Phase1Config.from_context(context, pde_weight=self.pde_weight)
+            context, from_budget(Phase1Config, context, pde_weight=self.pde_weight)
         )
         return super().fit(context)
 

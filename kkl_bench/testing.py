@@ -12,13 +12,17 @@ named; :func:`estimator_checks` yields them for ``pytest.mark.parametrize``.
 The checks fit the estimator once on a system (default ``duffing``) with the
 ``quick`` profile's budget, inside :func:`sealed_test_streams` (so reading a
 test set fails), and run it on short forced trajectories from a stream of
-its own.
+its own. Every fit gets a fresh, empty cache directory, so the determinism
+check really trains twice.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import tempfile
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -69,10 +73,17 @@ class Conformance:
             seed=0,
             profile="quick",
             budget=get_profile("quick").budget_for(self.name) if budget is None else budget,
+            cache_dir=self.fresh_cache(),
         )
         self.data: Trajectories = self.context.training.simulate(
             regimes.get("sinusoid")(), CHECK_BATCH, stream="conformance", n_samples=CHECK_STEPS
         )
+
+    def fresh_cache(self):
+        """A new empty cache directory, removed with this object."""
+        directory = tempfile.TemporaryDirectory(prefix="kkl-bench-check-")
+        self._directories = [*getattr(self, "_directories", []), directory]
+        return Path(directory.name)
 
     @functools.cached_property
     def fitted(self) -> Estimator:
@@ -148,9 +159,10 @@ class Conformance:
         )
 
     def check_deterministic(self) -> None:
-        """Fitting again with the same context and seed gives the same estimates."""
+        """Fitting again with the same context and seed (and an empty cache) gives the same estimates."""
+        context = dataclasses.replace(self.context, cache_dir=self.fresh_cache())
         with sealed_test_streams():
-            again = self.prototype.clone().fit(self.context)
+            again = self.prototype.clone().fit(context)
         assert np.allclose(self.estimate(again), self.x_hat, rtol=1e-6, atol=1e-9), (
             "two fits with the same seed gave different estimates"
         )

@@ -44,9 +44,7 @@ RATE_CANDIDATES = ((1.0, 5.0), (2.0, 10.0), (5.0, 20.0), (10.0, 40.0))
 class Phase1Config:
     """Everything that determines a Phase-1 model (with the system, seed and protocol).
 
-    Budget keys read from the profile: ``hidden`` (a number, or a table by
-    system name with a ``default``), ``depth``, ``train_trajectories``,
-    ``encoder_steps``, ``decoder_steps``, ``selection_steps``, ``batch``.
+    Built from the profile's budget with :func:`kkl_bench.kkl.config.from_budget`.
     """
 
     hidden: int = 64
@@ -83,6 +81,8 @@ class AutonomousModel:
     encoder: NormalizedMLP
     decoder: NormalizedMLP
     selection: dict[str, float] = field(default_factory=dict)
+    description: dict = field(default_factory=dict)
+    """The cache description that determines this model (extended by later phases' keys)."""
 
     def decode(self, z: np.ndarray) -> np.ndarray:
         """``T*(z)``: ``z: (..., n_z)`` -> ``(..., n_x)`` (float64 numpy)."""
@@ -264,4 +264,4 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
     for network in (encoder, decoder):
         network.requires_grad_(False)
     observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
-    return AutonomousModel(rates, observer, encoder, decoder, selection)
+    return AutonomousModel(rates, observer, encoder, decoder, selection, description)

@@ -1,0 +1,135 @@
+"""Static HyperKKL: the autonomous maps plus a learned input injection in the latent dynamics.
+
+The observer is ``dz/dt = A z + B y + phi(z, c_t)`` with
+``phi = u_t * psi(z, c_t)``: exactly zero when ``u_t = 0``, by construction.
+``c_t`` is an LSTM embedding of the input window ``u[t-w, t]``. For these
+control-affine systems the ideal injection is ``dT/dx(x) g u`` (one encoder
+JVP along ``g``), which is ``psi``'s training target at ``z = T(x)`` on forced
+training states. Between samples the injection is held (exponential Euler).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from kkl_bench.estimator import Estimator
+from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous
+from kkl_bench.kkl.config import from_budget
+from kkl_bench.kkl.optimize import minimize
+from kkl_bench.kkl.pde import directional_derivative
+from kkl_bench.kkl.phase2 import (
+    ForcedSamples,
+    Phase2Config,
+    load_or_train,
+    phase2_description,
+    to_numpy,
+)
+from kkl_bench.kkl.windows import WindowEncoder, sliding_windows
+from kkl_bench.registry import estimators
+
+CONTEXT_CHUNK = 4096
+"""Windows embedded per LSTM call at test time (bounds memory)."""
+
+
+class Injection(nn.Module):
+    """``psi(z, c)`` in normalized latent units: ``(n, n_z) x (n, context) -> (n, n_z)``."""
+
+    def __init__(self, n_z: int, context: int, hidden: int) -> None:
+        super().__init__()
+        self.window_encoder = WindowEncoder(context)
+        self.body = nn.Sequential(
+            nn.Linear(n_z + context, hidden),
+            nn.SiLU(),
+            nn.Linear(hidden, hidden),
+            nn.SiLU(),
+            nn.Linear(hidden, n_z),
+        )
+
+    def forward(self, z_tilde: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        return self.body(torch.cat([z_tilde, context], dim=-1))
+
+
+@estimators.register("static_hyperkkl")
+class StaticHyperKKL(Estimator):
+    """Autonomous ``T``, ``T*`` plus ``phi = u psi(z, LSTM(u window))`` trained on ``dT/dx g``.
+
+    Parameters
+    ----------
+    pde_weight: weight of the PDE residual in Phase 1 (shared with ``autonomous_kkl``).
+    injection_hidden: width of ``psi``'s two hidden layers.
+    """
+
+    name = "static_hyperkkl"
+
+    def __init__(self, pde_weight: float = 1.0, injection_hidden: int = 64) -> None:
+        self.pde_weight = pde_weight
+        self.injection_hidden = injection_hidden
+
+    def fit(self, context):
+        model = fit_autonomous(
+            context, from_budget(Phase1Config, context, pde_weight=self.pde_weight)
+        )
+        config = from_budget(Phase2Config, context)
+        with torch.random.fork_rng():
+            torch.manual_seed(context.seed)
+            injection = Injection(context.system.n_z, config.lstm_hidden, self.injection_hidden)
+        description = phase2_description(model, "kkl-static", config, self.get_params())
+        self.log_ = load_or_train(
+            context, description, injection, lambda: self._train(context, model, config, injection)
+        )
+        self.model_, self.config_, self.injection_ = model, config, injection
+        return super().fit(context)
+
+    @staticmethod
+    def _train(context, model, config, injection) -> dict:
+        samples = ForcedSamples.simulate(context, model, config)
+        x = samples.tensor("x")
+        encoder = model.encoder
+        g = torch.as_tensor(context.system.g, dtype=torch.float32)
+        generator = torch.Generator().manual_seed(context.seed)
+
+        def loss(_):
+            trajectory, step = samples.draw(config.phase2_batch, generator)
+            states = x[trajectory, step]
+            with torch.no_grad():
+                z, dz_along_g = directional_derivative(encoder, states, g.expand_as(states))
+                z_tilde = (z - encoder.out_mean) / encoder.out_std
+                z_tilde = z_tilde + 0.02 * torch.randn(z_tilde.shape, generator=generator)
+            contexts = injection.window_encoder(samples.windows[trajectory, step])
+            return (
+                (injection(z_tilde, contexts) - dz_along_g / encoder.out_std).pow(2).sum(-1).mean()
+            )
+
+        losses = minimize(
+            loss,
+            injection.parameters(),
+            config.phase2_steps,
+            description=f"{context.system.name}: injection psi",
+        )
+        return {"final_loss": float(np.mean(losses[-50:]))}
+
+    def contexts(self, u: np.ndarray) -> torch.Tensor:
+        """``(batch, steps, lstm_hidden)`` embeddings of every input window."""
+        windows = sliding_windows(u, self.config_.window)
+        flat = windows.reshape(-1, windows.shape[-1])
+        with torch.no_grad():
+            parts = [self.injection_.window_encoder(part) for part in flat.split(CONTEXT_CHUNK)]
+        return torch.cat(parts).reshape(*windows.shape[:2], -1)
+
+    def estimate(self, t, y, u):
+        self.check_fitted()
+        observer, encoder = self.model_.observer, self.model_.encoder
+        contexts = self.contexts(u)
+        gain = observer.injection_gain * to_numpy(encoder.out_std)  # psi is in normalized units
+        z = np.empty((y.shape[0], y.shape[1], observer.n_z))
+        z[:, 0] = observer.initial_state(y[:, 0])
+        with torch.no_grad():
+            for k in range(y.shape[1] - 1):
+                z_tilde = (
+                    torch.as_tensor(z[:, k], dtype=torch.float32) - encoder.out_mean
+                ) / encoder.out_std
+                injection = u[:, k] * to_numpy(self.injection_(z_tilde, contexts[:, k]))
+                z[:, k + 1] = observer.step(z[:, k], y[:, k], y[:, k + 1]) + injection @ gain.T
+        return self.model_.decode(z)

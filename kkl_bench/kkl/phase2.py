@@ -1,0 +1,105 @@
+"""What the input-aware KKL plugins share in Phase 2: forced data, windows, caching.
+
+Phase-2 data are forced trajectories (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING`
+inputs, training streams only) run through the Phase-1 latent observer,
+which ignores the input: ``z_k`` is what the observer holds at test time.
+Samples are drawn from the protocol's scored window.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from kkl_bench.estimator import FitContext
+from kkl_bench.kkl.autonomous import AutonomousModel
+from kkl_bench.kkl.cache import CheckpointCache
+from kkl_bench.kkl.data import ObserverData, observer_data
+from kkl_bench.kkl.inputs import FORCED_TRAINING
+from kkl_bench.kkl.windows import sliding_windows
+from kkl_bench.protocol.metrics import steady_state_start
+
+
+@dataclass(frozen=True)
+class Phase2Config:
+    """Budget of a Phase-2 training (read with :func:`kkl_bench.kkl.config.from_budget`)."""
+
+    window: int = 100
+    lstm_hidden: int = 64
+    phase2_trajectories: int = 32
+    phase2_steps: int = 1000
+    phase2_batch: int = 256
+    collocation_points: int = 8
+
+
+@dataclass
+class ForcedSamples:
+    """Forced training data indexed by (trajectory, step) on the scored window.
+
+    Attributes
+    ----------
+    data: the trajectories and observer states.
+    windows: ``(n, steps, window + 1)`` input windows.
+    """
+
+    data: ObserverData
+    windows: torch.Tensor
+
+    @classmethod
+    def simulate(
+        cls, context: FitContext, model: AutonomousModel, config: Phase2Config
+    ) -> ForcedSamples:
+        data = observer_data(
+            context, model.observer, FORCED_TRAINING, config.phase2_trajectories, "kkl/phase2"
+        )
+        return cls(data, sliding_windows(data.u, config.window))
+
+    def draw(
+        self, n: int, generator: torch.Generator, last_offset: int = 0
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Random (trajectory, step) indices, ``n`` of each, steps in the scored window
+        leaving ``last_offset`` samples after them."""
+        count, steps = self.windows.shape[:2]
+        start = steady_state_start(steps)
+        trajectory = torch.randint(count, (n,), generator=generator)
+        step = torch.randint(start, steps - last_offset, (n,), generator=generator)
+        return trajectory, step
+
+    def tensor(self, name: str) -> torch.Tensor:
+        """One of ``x``, ``z``, ``u``, ``y`` as a float32 tensor ``(n, steps, dim)``."""
+        return torch.as_tensor(getattr(self.data, name), dtype=torch.float32)
+
+
+def phase2_description(
+    model: AutonomousModel, kind: str, config: Phase2Config, params: dict[str, Any]
+) -> dict[str, Any]:
+    """The cache description of a Phase-2 model built on ``model``."""
+    return {"kind": kind, "phase1": model.description, "config": asdict(config), "params": params}
+
+
+def load_or_train(
+    context: FitContext, description: dict[str, Any], modules: nn.Module, train
+) -> dict[str, Any]:
+    """Load ``modules``' state from the cache, or call ``train()`` and store it.
+
+    ``train()`` returns a dict of extra facts to store with the state (e.g. a
+    training log); it is returned either way.
+    """
+    cache = CheckpointCache(context.cache_dir)
+    stored = cache.load(description["kind"], description)
+    if stored is not None:
+        modules.load_state_dict(stored["state"])
+        log = dict(stored["log"])
+    else:
+        log = train()
+        cache.save(description["kind"], description, {"state": modules.state_dict(), "log": log})
+    modules.requires_grad_(False)
+    return log
+
+
+def to_numpy(tensor: torch.Tensor) -> np.ndarray:
+    return tensor.detach().double().numpy()
