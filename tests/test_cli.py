@@ -50,7 +50,10 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["run", "--estimator", "ekff"], "unknown estimator 'ekff'; valid estimators: ekf, ukf"),
+        (
+            ["run", "--estimator", "ekff"],
+            "unknown estimator 'ekff'; valid estimators: autonomous_kkl, curriculum_kkl, dynamic_hyperkkl, ekf, static_hyperkkl, ukf (did you mean 'ekf'?)",
+        ),
         (
             ["run", "--estimator", "ekf", "--system", "duffin"],
             "unknown system 'duffin'; valid systems: duffing, lorenz, rossler, vdp",
@@ -61,7 +64,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
         ),
         (
             ["run", "--estimator", "ekf", "--profile", "huge"],
-            "unknown profile 'huge'; valid profiles: quick, standard",
+            "unknown profile 'huge'; valid profiles: quick, standard, paper",
         ),
         (["check", "nope"], "unknown estimator 'nope'"),
     ],

@@ -95,7 +95,14 @@ def test_builtins_are_discovered_through_their_entry_points():
     declared = {
         point.name for point in importlib.metadata.entry_points(group="kkl_bench.estimators")
     }
-    assert {"ekf", "ukf"} <= declared
+    assert {
+        "ekf",
+        "ukf",
+        "autonomous_kkl",
+        "curriculum_kkl",
+        "static_hyperkkl",
+        "dynamic_hyperkkl",
+    } <= declared
     assert {point.name for point in importlib.metadata.entry_points(group="kkl_bench.systems")} >= {
         "duffing",
         "vdp",

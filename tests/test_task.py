@@ -84,7 +84,7 @@ def test_builtin_profiles():
 
 def test_unknown_profile_lists_the_valid_ones():
     with pytest.raises(
-        ProfileError, match="unknown profile 'fast'; valid profiles: quick, standard"
+        ProfileError, match="unknown profile 'fast'; valid profiles: quick, standard, paper"
     ):
         get_profile("fast")
 

@@ -24,7 +24,8 @@ import torch
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.cache import CheckpointCache
-from kkl_bench.kkl.data import ObserverData, burn_in_steps, observer_data
+from kkl_bench.kkl.data import Box, ObserverData, burn_in_steps, observer_data
+from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.kkl.networks import NormalizedMLP
 from kkl_bench.kkl.optimize import minimize
@@ -33,7 +34,7 @@ from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.signals import InputFamily
 from kkl_bench.registry import regimes
 
-TOOLKIT_VERSION = 1
+TOOLKIT_VERSION = 2
 """Bump when a change to this module changes what a given configuration trains."""
 
 RATE_CANDIDATES = ((1.0, 5.0), (2.0, 10.0), (5.0, 20.0), (10.0, 40.0))
@@ -57,6 +58,10 @@ class Phase1Config:
     pde_weight: float = 1.0
     rate_candidates: tuple[tuple[float, float], ...] = RATE_CANDIDATES
     jitter: float = 0.02
+    train_box: str = "covering"
+    """``"protocol"``: unforced training trajectories start in the x0 box only;
+    ``"covering"``: half of them start in a box covering the states that forced
+    training trajectories reach (see :func:`training_boxes`)."""
 
     @classmethod
     def from_context(cls, context: FitContext, **overrides) -> Phase1Config:
@@ -92,6 +97,29 @@ class AutonomousModel:
     def estimate(self, y: np.ndarray) -> np.ndarray:
         """Input-ignoring estimates ``(batch, steps, n_x)`` from ``y: (batch, steps, n_y)``."""
         return self.decode(self.observer.run(y))
+
+
+def training_boxes(context: FitContext, config: Phase1Config) -> list[Box]:
+    """Boxes the unforced Phase-1 trajectories start from.
+
+    The covering box is the per-state range of forced training trajectories
+    (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING` inputs, a training stream),
+    joined with the x0 box: forced Duffing reaches ``|x1|`` of 8-10, far
+    outside ``[-1, 1]``, and maps trained on the x0 box alone are wrong there.
+    """
+    protocol_box = (context.x0_low, context.x0_high)
+    if config.train_box == "protocol":
+        return [protocol_box]
+    if config.train_box != "covering":
+        raise ValueError(f"unknown train_box {config.train_box!r}; valid: protocol, covering")
+    forced = context.training.simulate(
+        FORCED_TRAINING, config.train_trajectories, stream="kkl/box"
+    ).x
+    states = forced.reshape(-1, forced.shape[-1])
+    return [
+        protocol_box,
+        (np.minimum(states.min(0), context.x0_low), np.maximum(states.max(0), context.x0_high)),
+    ]
 
 
 def _networks(n_x: int, n_z: int, config: Phase1Config) -> tuple[NormalizedMLP, NormalizedMLP]:
@@ -133,9 +161,14 @@ def train_decoder(
 
 
 def _select_rates(
-    context: FitContext, config: Phase1Config, train_inputs: InputFamily, generator: torch.Generator
+    context: FitContext,
+    config: Phase1Config,
+    train_inputs: InputFamily,
+    boxes: list[Box],
+    generator: torch.Generator,
 ) -> tuple[np.ndarray, dict[str, float]]:
-    """The candidate rate range with the lowest validation RMSE of a briefly trained decoder."""
+    """The candidate rate range with the lowest validation RMSE of a briefly trained decoder
+    (validation trajectories start in the protocol's x0 box, on their own stream)."""
     system = context.system
     scores = {}
     best = None
@@ -143,7 +176,7 @@ def _select_rates(
         rates = spread_eigenvalues(system.n_z, slowest, fastest)
         observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
         train = observer_data(
-            context, observer, train_inputs, config.train_trajectories, "kkl/select"
+            context, observer, train_inputs, config.train_trajectories, "kkl/select", boxes
         )
         validation = observer_data(
             context,
@@ -233,9 +266,12 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
     else:
         generator = torch.Generator().manual_seed(context.seed)
         unforced = regimes.get("zero")()
-        rates, selection = _select_rates(context, config, unforced, generator)
+        boxes = training_boxes(context, config)
+        rates, selection = _select_rates(context, config, unforced, boxes, generator)
         observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
-        data = observer_data(context, observer, unforced, config.train_trajectories, "kkl/phase1")
+        data = observer_data(
+            context, observer, unforced, config.train_trajectories, "kkl/phase1", boxes
+        )
         collocation = _train_encoder(context, config, encoder, data, rates, generator)
         x, z = (_tensor(a) for a in data.scored())
         decoder.set_normalization(z, x)

@@ -51,14 +51,34 @@ class ObserverData:
         return self.settled(steady_state_start(self.x.shape[1]))
 
 
+Box = tuple[np.ndarray, np.ndarray]
+"""Lower and upper corners ``(n_x,)`` of a box of initial states."""
+
+
 def observer_data(
-    context: FitContext, observer: LatentObserver, inputs: InputFamily, n: int, stream: str
+    context: FitContext,
+    observer: LatentObserver,
+    inputs: InputFamily,
+    n: int,
+    stream: str,
+    boxes: list[Box] | None = None,
 ) -> ObserverData:
-    """Simulate ``n`` trajectories driven by ``inputs`` and run ``observer`` on their outputs."""
-    trajectories = context.training.simulate(inputs, n, stream=stream)
-    return ObserverData(
-        trajectories.x, observer.run(trajectories.y), trajectories.y, trajectories.u
-    )
+    """Simulate ``n`` trajectories driven by ``inputs`` and run ``observer`` on their outputs.
+
+    Initial states are drawn from ``boxes`` (default: the protocol's x0 box),
+    the trajectories shared out evenly, each box on its own sub-stream.
+    """
+    boxes = boxes or [(context.x0_low, context.x0_high)]
+    counts = [len(part) for part in np.array_split(np.arange(n), len(boxes))]
+    parts = [
+        context.training.simulate(
+            inputs, count, stream=f"{stream}/box{i}", x0_low=low, x0_high=high
+        )
+        for i, ((low, high), count) in enumerate(zip(boxes, counts, strict=True))
+        if count
+    ]
+    x, y, u = (np.concatenate([getattr(part, name) for part in parts]) for name in ("x", "y", "u"))
+    return ObserverData(x, observer.run(y), y, u)
 
 
 def burn_in_steps(rates: np.ndarray, dt: float) -> int:
