@@ -14,6 +14,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from kkl_bench import harness, leaderboard
+from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
+from kkl_bench.executors import EXECUTORS
 from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
 from kkl_bench.results import load_results
 from kkl_bench.task import ProfileError, get_profile, load_profiles
@@ -25,6 +27,9 @@ examples:
   kkl-bench run --estimator ekf --system duffing vdp --regime sinusoid square
   kkl-bench leaderboard --with-paper
   kkl-bench leaderboard --format latex > table.tex
+  kkl-bench run --estimator all --profile standard --jobs 2
+  kkl-bench run --estimator ekf --executor dask --scheduler tcp://scheduler:8786
+  kkl-bench cache info
   kkl-bench check my_estimator
 """
 
@@ -36,6 +41,12 @@ def _names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:
     for name in requested:
         registry.get(name)  # raises an error that lists the valid names
     return tuple(dict.fromkeys(requested))
+
+
+def _jobs(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"jobs must be a positive integer, got {text!r}")
+    return int(text)
 
 
 def _seed(text: str) -> int:
@@ -82,9 +93,27 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--cache",
         type=Path,
-        default=Path(".kkl_bench_cache"),
+        default=None,
         metavar="DIR",
-        help="cache for trained models",
+        help="cache for trained models (default $KKL_BENCH_CACHE or ./.kkl_bench_cache)",
+    )
+    run.add_argument(
+        "--jobs",
+        type=_jobs,
+        default=1,
+        metavar="N",
+        help="run N (estimator, system) jobs at once (default 1)",
+    )
+    run.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="loky",
+        help="loky: local worker processes (default); dask: a Dask cluster (see --scheduler)",
+    )
+    run.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Dask scheduler address, e.g. tcp://10.0.0.5:8786 (default: start a LocalCluster of --jobs workers)",
     )
     run.add_argument("--force", action="store_true", help="recompute cells already on disk")
 
@@ -111,6 +140,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="append fit time, estimation cost and NRMSE per estimator and system (markdown)",
     )
 
+    cache = commands.add_parser("cache", help="show or clear the cache of trained models")
+    cache.add_argument("action", choices=("info", "clear"))
+    cache.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="cache directory (default $KKL_BENCH_CACHE or ./.kkl_bench_cache)",
+    )
+
     check = commands.add_parser("check", help="run the conformance checks on an estimator")
     check.add_argument("estimator", metavar="NAME")
     check.add_argument("--system", default="duffing", help="system to check on (default duffing)")
@@ -135,7 +174,7 @@ def _run(args: argparse.Namespace) -> int:
         profile=get_profile(args.profile),
         seed=args.seed,
         results_dir=args.results,
-        cache_dir=args.cache,
+        cache_dir=args.cache or default_cache_dir(),
         force=args.force,
     )
     total = len(spec.estimators) * len(spec.systems) * len(spec.regimes)
@@ -149,7 +188,9 @@ def _run(args: argparse.Namespace) -> int:
                 tqdm.write(f"error in {cell.estimator} {cell.task}: {cell.error.splitlines()[-1]}")
             bar.update()
 
-        summary = harness.run(spec, progress)
+        summary = harness.run(
+            spec, progress, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler
+        )
     print(
         f"{len(summary.scored)} cells scored, {len(summary.cached)} already done, "
         f"{len(summary.failed)} failed; results in {spec.results_dir}/{spec.profile.name}/"
@@ -181,6 +222,21 @@ def _leaderboard(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cache(args: argparse.Namespace) -> int:
+    root = args.cache or default_cache_dir()
+    if args.action == "clear":
+        print(f"removed {root} ({clear_cache(root) / 1e6:.1f} MB)")
+        return 0
+    kinds = cache_info(root)
+    print(f"cache: {root.resolve()}")
+    if not kinds:
+        print("  (empty)")
+    for kind in kinds:
+        damaged = f", {kind.damaged} damaged (rebuilt on next use)" if kind.damaged else ""
+        print(f"  {kind.kind}: {kind.entries} entries, {kind.size_bytes / 1e6:.1f} MB{damaged}")
+    return 0
+
+
 def _check(args: argparse.Namespace) -> int:
     from kkl_bench.testing import run_checks
 
@@ -200,6 +256,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "list": lambda: _list(),
         "run": lambda: _run(args),
         "leaderboard": lambda: _leaderboard(args),
+        "cache": lambda: _cache(args),
         "check": lambda: _check(args),
     }
     try:

@@ -24,6 +24,7 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 
+from kkl_bench.cache import default_cache_dir
 from kkl_bench.protocol.system import System
 from kkl_bench.training import TrainingData
 
@@ -54,7 +55,7 @@ class FitContext:
     seed: int = 0
     profile: str = "quick"
     budget: dict[str, Any] = field(default_factory=dict)
-    cache_dir: Path = Path(".kkl_bench_cache")
+    cache_dir: Path = field(default_factory=default_cache_dir)
 
     @property
     def x0_low(self) -> np.ndarray:

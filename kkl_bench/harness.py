@@ -18,11 +18,20 @@ from pathlib import Path
 
 import numpy as np
 
+from kkl_bench.cache import default_cache_dir
 from kkl_bench.estimator import Estimator, FitContext
+from kkl_bench.executors import execute
 from kkl_bench.protocol import DT, N_SAMPLES, PROTOCOL_ID, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, smape
 from kkl_bench.registry import estimators, regimes, systems
-from kkl_bench.results import CellResult, cell_path, provenance, read_cell, write_cell
+from kkl_bench.results import (
+    CellResult,
+    cell_path,
+    check_writable,
+    provenance,
+    read_cell,
+    write_cell,
+)
 from kkl_bench.task import Profile, Task, TestSet, make_test_set
 from kkl_bench.training import TrainingData
 
@@ -40,7 +49,7 @@ class RunSpec:
     profile: Profile
     seed: int = 0
     results_dir: Path = Path("results")
-    cache_dir: Path = Path(".kkl_bench_cache")
+    cache_dir: Path = field(default_factory=default_cache_dir)
     force: bool = False
 
     def __post_init__(self) -> None:
@@ -171,6 +180,20 @@ def run_system(
         yield cell
 
 
+@dataclass(frozen=True)
+class Job:
+    """One unit of work: fit ``estimator`` on ``system`` once, score it on ``regimes``."""
+
+    estimator: str
+    system: str
+    regimes: tuple[str, ...]
+
+
+def run_job(spec: RunSpec, job: Job) -> list[CellResult]:
+    """Run ``job`` (each cell is written as it finishes); returns its cells."""
+    return list(run_system(spec, job.estimator, job.system, job.regimes))
+
+
 def _done(spec: RunSpec, estimator: str, system: str, regime: str) -> CellResult | None:
     path = cell_path(spec.results_dir, estimator, system, regime, spec.profile.name, spec.seed)
     if spec.force or not path.exists():
@@ -179,31 +202,91 @@ def _done(spec: RunSpec, estimator: str, system: str, regime: str) -> CellResult
     return cell if cell.status == "ok" else None
 
 
-def run(spec: RunSpec, progress: Callable[[CellResult, str], None] | None = None) -> RunSummary:
-    """Run the whole grid of ``spec``; ``progress(cell, status)`` is called for every cell.
-
-    ``status`` is ``"cached"`` (already on disk, skipped), ``"ok"``,
-    ``"diverged"`` (scored, some trajectory diverged) or ``"error"``.
-    """
-    summary = RunSummary()
-    report = progress or (lambda cell, status: None)
+def plan(spec: RunSpec) -> tuple[list[Job], list[CellResult]]:
+    """The jobs still to run and the cells already done (skipped unless ``spec.force``)."""
+    jobs, cached = [], []
     for estimator in spec.estimators:
         for system in spec.systems:
             todo = []
             for regime in spec.regimes:
-                cached = _done(spec, estimator, system, regime)
-                if cached is None:
+                done = _done(spec, estimator, system, regime)
+                if done is None:
                     todo.append(regime)
                 else:
-                    summary.cached.append(cached)
-                    report(cached, "cached")
-            if not todo:
-                continue
-            for cell in run_system(spec, estimator, system, todo):
-                if cell.status == "ok":
-                    summary.scored.append(cell)
-                    report(cell, "diverged" if cell.n_diverged else "ok")
-                else:
-                    summary.failed.append(cell)
-                    report(cell, "error")
+                    cached.append(done)
+            if todo:
+                jobs.append(Job(estimator, system, tuple(todo)))
+    return jobs, cached
+
+
+def _lost_cells(spec: RunSpec, job: Job, error: BaseException) -> list[CellResult]:
+    """Cells of ``job`` after its worker died: those it wrote, the rest as errors (written)."""
+    cells = []
+    for regime in job.regimes:
+        done = _done(spec, job.estimator, job.system, regime)
+        if done is None:
+            task = Task(job.system, regime)
+            done = CellResult(
+                estimator=job.estimator,
+                system=job.system,
+                regime=regime,
+                task=task.id,
+                profile=spec.profile.name,
+                seed=spec.seed,
+                status="error",
+                n_test=spec.profile.n_test,
+                protocol=PROTOCOL_ID,
+                provenance=provenance(),
+                error=f"not completed: the run stopped ({type(error).__name__}: {error})",
+            )
+            write_cell(spec.results_dir, done)
+        cells.append(done)
+    return cells
+
+
+def run(
+    spec: RunSpec,
+    progress: Callable[[CellResult, str], None] | None = None,
+    jobs: int = 1,
+    executor: str = "loky",
+    scheduler: str | None = None,
+) -> RunSummary:
+    """Run the grid of ``spec``; ``progress(cell, status)`` is called for every cell.
+
+    ``status`` is ``"cached"`` (already on disk, skipped), ``"ok"``,
+    ``"diverged"`` (scored, some trajectory diverged) or ``"error"``. Jobs
+    (estimator x system) run through :func:`kkl_bench.executors.execute`
+    with ``jobs``, ``executor`` and ``scheduler``. If a worker dies, every
+    finished cell is kept, the others are recorded as errors, and the run
+    returns.
+    """
+    check_writable(spec.results_dir)
+    summary = RunSummary()
+    report = progress or (lambda cell, status: None)
+    todo, cached = plan(spec)
+    for cell in cached:
+        summary.cached.append(cell)
+        report(cell, "cached")
+
+    def record(cell: CellResult) -> None:
+        if cell.status == "ok":
+            summary.scored.append(cell)
+            report(cell, "diverged" if cell.n_diverged else "ok")
+        else:
+            summary.failed.append(cell)
+            report(cell, "error")
+
+    returned = set()
+    try:
+        for cells in execute(run_job, [(spec, job) for job in todo], jobs, executor, scheduler):
+            returned.add((cells[0].estimator, cells[0].system))
+            for cell in cells:
+                record(cell)
+    except (KeyboardInterrupt, ValueError):
+        raise
+    except Exception as error:  # a worker died (killed, out of memory): keep what finished
+        for job in todo:
+            if (job.estimator, job.system) not in returned:
+                for cell in _lost_cells(spec, job, error):
+                    record(cell)
     return summary

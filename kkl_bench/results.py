@@ -90,6 +90,22 @@ def write_cell(results_dir: Path, cell: CellResult) -> Path:
     return path
 
 
+def check_writable(results_dir: Path) -> None:
+    """Create ``results_dir`` if needed and make sure files can be written there.
+
+    Raises ``OSError`` naming the directory, before any work is done.
+    """
+    results_dir = Path(results_dir)
+    try:
+        results_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=results_dir):
+            pass
+    except OSError as error:
+        raise OSError(
+            f"results directory {results_dir} is not writable: {error.strerror or error}"
+        ) from error
+
+
 def read_cell(path: Path) -> CellResult:
     """Load one record written by :func:`write_cell`."""
     return CellResult(**_from_json(json.loads(Path(path).read_text())))

@@ -5,7 +5,9 @@ determines the model (estimator configuration, system and its parameters,
 protocol, seed, budget). A later run with the same key loads it; any change
 makes a new key, so the model is retrained. Files are written to a
 temporary name and renamed, so an interrupted save never leaves a partial
-checkpoint behind.
+checkpoint behind. Each checkpoint has a SHA-256 sidecar (``<key>.pt.sha256``)
+written after it; a checkpoint whose bytes do not match (truncated,
+corrupted, or missing its sidecar) is deleted and rebuilt, never loaded.
 """
 
 from __future__ import annotations
@@ -14,10 +16,13 @@ import hashlib
 import json
 import os
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from kkl_bench.cache import checksum_path, sha256_of, write_atomically
 
 
 def cache_key(description: dict[str, Any]) -> str:
@@ -36,11 +41,24 @@ class CheckpointCache:
         return self.root / kind / f"{cache_key(description)}.pt"
 
     def load(self, kind: str, description: dict[str, Any]) -> dict[str, Any] | None:
-        """The stored checkpoint for ``description``, or None."""
+        """The stored checkpoint for ``description``, or None (also for a damaged one, which is removed)."""
         path = self.path(kind, description)
         if not path.exists():
             return None
-        return torch.load(path, map_location="cpu", weights_only=True)
+        checksum = checksum_path(path)
+        if checksum.exists() and checksum.read_text().strip() == sha256_of(path):
+            try:
+                return torch.load(path, map_location="cpu", weights_only=True)
+            except Exception as error:  # damaged in a way the checksum cannot see
+                reason = f"unreadable ({error})"
+        else:
+            reason = "checksum mismatch" if checksum.exists() else "no checksum"
+        warnings.warn(
+            f"discarding damaged checkpoint {path}: {reason}; it will be rebuilt", stacklevel=2
+        )
+        path.unlink(missing_ok=True)
+        checksum.unlink(missing_ok=True)
+        return None
 
     def save(self, kind: str, description: dict[str, Any], state: dict[str, Any]) -> Path:
         """Store ``state`` (tensors, numbers, strings, lists, dicts) atomically."""
@@ -57,4 +75,5 @@ class CheckpointCache:
         except BaseException:
             Path(temporary).unlink(missing_ok=True)
             raise
+        write_atomically(checksum_path(path), sha256_of(path))
         return path

@@ -1,0 +1,79 @@
+"""Where trained models are cached, what the cache holds, and its integrity helpers.
+
+The cache directory is ``--cache DIR``, else ``$KKL_BENCH_CACHE``, else
+``.kkl_bench_cache`` in the working directory. Estimators store content-keyed
+files under ``<cache>/<kind>/`` (see :mod:`kkl_bench.kkl.cache`), each with a
+``.sha256`` sidecar that is checked before loading.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+
+def default_cache_dir() -> Path:
+    """``$KKL_BENCH_CACHE`` if set, else ``.kkl_bench_cache`` in the working directory."""
+    return Path(os.environ.get("KKL_BENCH_CACHE", ".kkl_bench_cache"))
+
+
+def checksum_path(path: Path) -> Path:
+    """The SHA-256 sidecar of ``path``."""
+    return path.with_name(path.name + ".sha256")
+
+
+def sha256_of(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Write ``text`` to a temporary file beside ``path``, then rename it into place."""
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(handle, "w") as file:
+        file.write(text)
+    os.replace(temporary, path)
+
+
+@dataclass(frozen=True)
+class CacheKind:
+    """Entries of one kind (e.g. ``kkl-phase1``): count, bytes, and damaged entries."""
+
+    kind: str
+    entries: int
+    size_bytes: int
+    damaged: int
+
+
+def cache_info(root: Path) -> list[CacheKind]:
+    """What the cache at ``root`` holds, kind by kind (empty if it does not exist)."""
+    kinds = []
+    for folder in sorted(p for p in Path(root).glob("*") if p.is_dir()):
+        entries = [
+            p for p in folder.iterdir() if p.is_file() and not p.name.endswith((".sha256", ".tmp"))
+        ]
+        damaged = sum(
+            not checksum_path(p).exists() or checksum_path(p).read_text().strip() != sha256_of(p)
+            for p in entries
+        )
+        size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+        kinds.append(CacheKind(folder.name, len(entries), size, damaged))
+    return kinds
+
+
+def clear_cache(root: Path) -> int:
+    """Delete the cache at ``root``; returns the number of bytes freed."""
+    root = Path(root)
+    if not root.exists():
+        return 0
+    freed = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+    shutil.rmtree(root)
+    return freed

@@ -1,0 +1,101 @@
+"""One way to run independent jobs: an unordered joblib generator, on local processes or Dask.
+
+``loky`` (the default) runs jobs in worker processes on this machine, each
+limited to ``cores // jobs`` threads (BLAS, OpenMP and torch) so that N
+workers do not oversubscribe the cores; with one job it runs them in this
+process. ``dask`` sends the same jobs through joblib's Dask backend to a
+``distributed`` cluster: the scheduler at ``scheduler`` if given (which is how
+SLURM or PBS clusters are reached, through dask-jobqueue), else a
+``LocalCluster`` of ``jobs`` single-threaded worker processes. Results come
+back in completion order.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+from joblib import Parallel, delayed, parallel_config
+from threadpoolctl import threadpool_limits
+
+EXECUTORS = ("loky", "dask")
+
+
+def threads_per_worker(jobs: int) -> int:
+    """Threads each of ``jobs`` concurrent workers may use on this machine."""
+    return max(1, (os.cpu_count() or 1) // jobs)
+
+
+def limited(function: Callable, threads: int | None) -> Callable:
+    """``function`` run with BLAS/OpenMP and torch limited to ``threads`` (None: no limit)."""
+
+    def call(*args: Any) -> Any:
+        if threads is None:
+            return function(*args)
+        import torch
+
+        torch.set_num_threads(threads)
+        with threadpool_limits(limits=threads):
+            return function(*args)
+
+    return call
+
+
+@contextlib.contextmanager
+def _dask_client(jobs: int, scheduler: str | None) -> Iterator[None]:
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as error:
+        raise ValueError("the dask executor needs `pip install 'kkl-bench[dask]'`") from error
+    if scheduler:
+        client = Client(scheduler)
+        cluster = None
+    else:
+        cluster = LocalCluster(
+            n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None
+        )
+        client = Client(cluster)
+    try:
+        with parallel_config(backend="dask"):
+            yield
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def execute(
+    function: Callable,
+    arguments: Iterable[tuple],
+    jobs: int = 1,
+    executor: str = "loky",
+    scheduler: str | None = None,
+) -> Iterator[Any]:
+    """Yield ``function(*args)`` for every ``args`` in ``arguments``, in completion order.
+
+    Raises ``ValueError`` for an unknown executor or a ``jobs`` below 1.
+    """
+    if executor not in EXECUTORS:
+        raise ValueError(f"unknown executor {executor!r}; valid executors: {', '.join(EXECUTORS)}")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
+    if executor == "dask":
+        with _dask_client(jobs, scheduler):
+            task = limited(function, 1)
+            yield from Parallel(n_jobs=-1, return_as="generator_unordered")(
+                delayed(task)(*args) for args in arguments
+            )
+        return
+    if scheduler:
+        raise ValueError("--scheduler is for the dask executor")
+    if jobs == 1:
+        for args in arguments:
+            yield function(*args)
+        return
+    task = limited(function, threads_per_worker(jobs))
+    with parallel_config(backend="loky", n_jobs=jobs):
+        yield from Parallel(return_as="generator_unordered")(
+            delayed(task)(*args) for args in arguments
+        )

@@ -1,0 +1,74 @@
+"""Checkpoint integrity, the cache location and the cache command."""
+
+import pytest
+import torch
+
+from kkl_bench.cache import cache_info, default_cache_dir
+from kkl_bench.cli import main
+from kkl_bench.kkl.cache import CheckpointCache
+
+DESCRIPTION = {"kind": "test", "value": 1}
+
+
+def stored(tmp_path):
+    cache = CheckpointCache(tmp_path)
+    path = cache.save("test-kind", DESCRIPTION, {"weights": torch.arange(1000.0)})
+    return cache, path
+
+
+def test_a_checkpoint_round_trips(tmp_path):
+    cache, _ = stored(tmp_path)
+    torch.testing.assert_close(
+        cache.load("test-kind", DESCRIPTION)["weights"], torch.arange(1000.0)
+    )
+    assert cache.load("test-kind", {**DESCRIPTION, "value": 2}) is None  # another key
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "no checksum"])
+def test_a_damaged_checkpoint_is_discarded_not_loaded(tmp_path, damage):
+    cache, path = stored(tmp_path)
+    data = bytearray(path.read_bytes())
+    if damage == "truncate":
+        path.write_bytes(data[: len(data) // 2])
+    elif damage == "flip":
+        data[len(data) // 2] ^= 0xFF
+        path.write_bytes(bytes(data))
+    else:
+        path.with_name(path.name + ".sha256").unlink()
+    assert cache_info(tmp_path)[0].damaged == 1
+    with pytest.warns(UserWarning, match="discarding damaged checkpoint"):
+        assert cache.load("test-kind", DESCRIPTION) is None
+    assert not path.exists()  # removed, so the next fit rebuilds it
+
+
+def test_cache_location_follows_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("KKL_BENCH_CACHE", str(tmp_path / "elsewhere"))
+    assert default_cache_dir() == tmp_path / "elsewhere"
+    monkeypatch.delenv("KKL_BENCH_CACHE")
+    assert str(default_cache_dir()) == ".kkl_bench_cache"
+
+
+def test_cache_command_reports_and_clears(tmp_path, capsys):
+    stored(tmp_path)
+    assert main(["cache", "info", "--cache", str(tmp_path)]) == 0
+    assert "test-kind: 1 entries" in capsys.readouterr().out
+    assert main(["cache", "clear", "--cache", str(tmp_path)]) == 0
+    assert not tmp_path.exists()
+    assert main(["cache", "info", "--cache", str(tmp_path)]) == 0
+    assert "(empty)" in capsys.readouterr().out
+
+
+def test_an_unwritable_results_directory_fails_before_any_work(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    assert main(["run", "--estimator", "ekf", "--results", str(blocker / "results")]) == 2
+    error = capsys.readouterr().err
+    assert f"results directory {blocker / 'results'} is not writable" in error
+
+
+@pytest.mark.parametrize("jobs", ["0", "-1", "two"])
+def test_invalid_jobs_exit_with_usage(jobs, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", "--estimator", "ekf", "--jobs", jobs])
+    assert exit_info.value.code == 2
+    assert f"jobs must be a positive integer, got '{jobs}'" in capsys.readouterr().err

@@ -1,0 +1,142 @@
+"""Parallel and distributed runs give the serial run's numbers; interrupted runs resume."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from kkl_bench import harness
+from kkl_bench.executors import execute
+from kkl_bench.harness import RunSpec, run
+from kkl_bench.results import load_results
+from kkl_bench.task import get_profile
+
+GRID = dict(
+    estimators=("ekf",),
+    systems=("duffing", "vdp"),
+    regimes=("zero", "square"),
+    profile=get_profile("quick"),
+)
+
+
+def numbers(results_dir):
+    table = load_results(results_dir).sort_values(["system", "regime"])
+    return table[
+        ["system", "regime", "rmse", "smape", "nrmse", "per_state_rmse", "test_set_fingerprint"]
+    ].to_dict("records")
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    results = tmp_path_factory.mktemp("serial")
+    assert run(RunSpec(**GRID, results_dir=results)).ok
+    return numbers(results)
+
+
+def test_local_processes_reproduce_the_serial_numbers(tmp_path, serial):
+    summary = run(RunSpec(**GRID, results_dir=tmp_path), jobs=2)
+    assert summary.ok and len(summary.scored) == 4
+    assert numbers(tmp_path) == serial
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_reproduces_the_serial_numbers(tmp_path, serial):
+    summary = run(RunSpec(**GRID, results_dir=tmp_path), jobs=2, executor="dask")
+    assert summary.ok and len(summary.scored) == 4
+    assert numbers(tmp_path) == serial
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(jobs=0), "jobs must be a positive integer, got 0"),
+        (dict(executor="slurm"), "unknown executor 'slurm'; valid executors: loky, dask"),
+        (dict(scheduler="tcp://x:1"), "--scheduler is for the dask executor"),
+    ],
+)
+def test_bad_executor_arguments_are_clear_errors(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        list(execute(print, [(1,)], **kwargs))
+
+
+def run_command(results, *extra):
+    return [
+        sys.executable,
+        "-m",
+        "kkl_bench.cli",
+        "run",
+        "--estimator",
+        "ekf",
+        "ukf",
+        "--profile",
+        "quick",
+        "--results",
+        str(results),
+        *extra,
+    ]
+
+
+def cell_files(results):
+    return sorted(Path(results).glob("*/*/*/*.json"))
+
+
+def start_and_stop_part_way(results, sig):
+    process = subprocess.Popen(
+        run_command(results), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    deadline = time.monotonic() + 120
+    while len(cell_files(results)) < 4:
+        assert process.poll() is None, "the run ended before it could be interrupted"
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    process.send_signal(sig)
+    process.wait(timeout=60)
+    return process
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
+def test_an_interrupted_run_resumes_with_nothing_lost_or_duplicated(tmp_path, sig):
+    process = start_and_stop_part_way(tmp_path, sig)
+    if sig == signal.SIGINT:
+        assert process.returncode == 130
+        assert "interrupted; finished cells are saved" in process.stderr.read()
+    before = {path: path.read_bytes() for path in cell_files(tmp_path)}
+    assert 4 <= len(before) < 32
+    for content in before.values():
+        json.loads(content)  # every file on disk is a whole record
+    resumed = subprocess.run(run_command(tmp_path), capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert (
+        f"{32 - len(before)} cells scored, {len(before)} already done, 0 failed" in resumed.stdout
+    )
+    after = cell_files(tmp_path)
+    assert len(after) == 32 and len({(p.parent, p.name) for p in after}) == 32
+    assert all(before[path] == path.read_bytes() for path in before)  # finished cells untouched
+    assert set(load_results(tmp_path)["status"]) == {"ok"}
+
+
+def job_whose_worker_dies_on_vdp(spec, job):
+    """Runs the job, except that the worker process scoring vdp dies without a word."""
+    if job.system == "vdp":
+        time.sleep(3)  # let the other worker finish its job first
+        os._exit(1)
+    return harness.run_job(spec, job)
+
+
+def test_a_dead_worker_keeps_finished_cells_and_records_the_rest(tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).resolve().parents[1]), prepend=os.pathsep)
+    monkeypatch.setattr(harness, "run_job", job_whose_worker_dies_on_vdp)
+    summary = run(RunSpec(**GRID, results_dir=tmp_path), jobs=2)
+    assert not summary.ok
+    assert {(cell.system, cell.status) for cell in summary.scored + summary.failed} == {
+        ("duffing", "ok"),
+        ("vdp", "error"),
+    }
+    assert all("not completed" in cell.error for cell in summary.failed)
+    assert set(load_results(tmp_path).groupby("system")["status"].first()) == {"ok", "error"}
