@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 from kkl_bench.estimator import Estimator
-from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous
-from kkl_bench.kkl.config import from_budget
+from kkl_bench.kkl.autonomous import fit_phase1
 from kkl_bench.registry import estimators
 
 
@@ -23,9 +22,7 @@ class AutonomousKKL(Estimator):
         self.pde_weight = pde_weight
 
     def fit(self, context):
-        self.model_ = fit_autonomous(
-            context, from_budget(Phase1Config, context, pde_weight=self.pde_weight)
-        )
+        self.model_ = fit_phase1(context, self.pde_weight)
         return super().fit(context)
 
     def estimate(self, t, y, u):

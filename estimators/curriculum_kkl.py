@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 
 from kkl_bench.estimator import Estimator
-from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous, train_decoder
+from kkl_bench.kkl.autonomous import fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import observer_data
 from kkl_bench.kkl.inputs import ConstantFamily, MultiSineFamily, SineFamily, SquareFamily
@@ -72,9 +72,7 @@ class CurriculumKKL(Estimator):
         self.pde_weight = pde_weight
 
     def fit(self, context):
-        model = copy.deepcopy(
-            fit_autonomous(context, from_budget(Phase1Config, context, pde_weight=self.pde_weight))
-        )
+        model = copy.deepcopy(fit_phase1(context, self.pde_weight))
         data_config = from_budget(Phase2Config, context)
         config = from_budget(CurriculumConfig, context)
         description = phase2_description(

@@ -23,12 +23,10 @@ import torch
 from torch import nn
 
 from kkl_bench.estimator import Estimator
-from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous
-from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.hyper import make_head
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
-from kkl_bench.kkl.phase2 import ForcedSamples, Phase2Config, load_or_train, phase2_description
+from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
 from kkl_bench.kkl.windows import WindowEncoder, is_active, sliding_windows
 from kkl_bench.registry import estimators
 
@@ -76,25 +74,21 @@ class DynamicHyperKKL(Estimator):
         self.rank = rank
 
     def fit(self, context):
-        model = fit_autonomous(
-            context, from_budget(Phase1Config, context, pde_weight=self.pde_weight)
-        )
-        config = from_budget(Phase2Config, context)
-        with torch.random.fork_rng():
-            torch.manual_seed(context.seed)
-            hyper = HyperNetwork(
+        self.model_, self.config_, self.hyper_, self.log_ = fit_phase2(
+            context,
+            "kkl-dynamic",
+            self.get_params(),
+            self.pde_weight,
+            lambda model, config: HyperNetwork(
                 model.encoder.parameter_shapes(),
                 model.decoder.parameter_shapes(),
                 config.lstm_hidden,
                 self.head,
                 self.chunk,
                 self.rank,
-            )
-        description = phase2_description(model, "kkl-dynamic", config, self.get_params())
-        self.log_ = load_or_train(
-            context, description, hyper, lambda: self._train(context, model, config, hyper)
+            ),
+            self._train,
         )
-        self.model_, self.config_, self.hyper_ = model, config, hyper
         return super().fit(context)
 
     def _train(self, context, model, config, hyper) -> dict:

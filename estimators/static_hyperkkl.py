@@ -15,17 +15,9 @@ import torch
 from torch import nn
 
 from kkl_bench.estimator import Estimator
-from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous
-from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
-from kkl_bench.kkl.phase2 import (
-    ForcedSamples,
-    Phase2Config,
-    load_or_train,
-    phase2_description,
-    to_numpy,
-)
+from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2, to_numpy
 from kkl_bench.kkl.windows import WindowEncoder, sliding_windows
 from kkl_bench.registry import estimators
 
@@ -68,18 +60,16 @@ class StaticHyperKKL(Estimator):
         self.injection_hidden = injection_hidden
 
     def fit(self, context):
-        model = fit_autonomous(
-            context, from_budget(Phase1Config, context, pde_weight=self.pde_weight)
+        self.model_, self.config_, self.injection_, self.log_ = fit_phase2(
+            context,
+            "kkl-static",
+            self.get_params(),
+            self.pde_weight,
+            lambda model, config: Injection(
+                context.system.n_z, config.lstm_hidden, self.injection_hidden
+            ),
+            self._train,
         )
-        config = from_budget(Phase2Config, context)
-        with torch.random.fork_rng():
-            torch.manual_seed(context.seed)
-            injection = Injection(context.system.n_z, config.lstm_hidden, self.injection_hidden)
-        description = phase2_description(model, "kkl-static", config, self.get_params())
-        self.log_ = load_or_train(
-            context, description, injection, lambda: self._train(context, model, config, injection)
-        )
-        self.model_, self.config_, self.injection_ = model, config, injection
         return super().fit(context)
 
     @staticmethod

@@ -55,6 +55,26 @@ def _seed(text: str) -> int:
     return int(text)
 
 
+def _add_results_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--results",
+        type=Path,
+        default=Path("results"),
+        metavar="DIR",
+        help="results directory (default ./results)",
+    )
+
+
+def _add_cache_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="cache of trained models (default $KKL_BENCH_CACHE, else ./.kkl_bench_cache)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kkl-bench",
@@ -83,20 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--seed", type=_seed, default=0, help="seed of the estimators' training streams (default 0)"
     )
-    run.add_argument(
-        "--results",
-        type=Path,
-        default=Path("results"),
-        metavar="DIR",
-        help="results directory (default ./results)",
-    )
-    run.add_argument(
-        "--cache",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="cache for trained models (default $KKL_BENCH_CACHE or ./.kkl_bench_cache)",
-    )
+    _add_results_argument(run)
+    _add_cache_argument(run)
     run.add_argument(
         "--jobs",
         type=_jobs,
@@ -119,13 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     board = commands.add_parser("leaderboard", help="print the leaderboard from stored results")
     board.add_argument("--format", choices=leaderboard.FORMATS, default="markdown")
-    board.add_argument(
-        "--results",
-        type=Path,
-        default=Path("results"),
-        metavar="DIR",
-        help="results directory (default ./results)",
-    )
+    _add_results_argument(board)
     board.add_argument(
         "--profile", help="profile to tabulate (default: standard if present, else the only one)"
     )
@@ -142,13 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")
     cache.add_argument("action", choices=("info", "clear"))
-    cache.add_argument(
-        "--cache",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="cache directory (default $KKL_BENCH_CACHE or ./.kkl_bench_cache)",
-    )
+    _add_cache_argument(cache)
 
     check = commands.add_parser("check", help="run the conformance checks on an estimator")
     check.add_argument("estimator", metavar="NAME")

@@ -24,6 +24,7 @@ import torch
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.cache import CheckpointCache
+from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import Box, ObserverData, burn_in_steps, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
@@ -301,3 +302,8 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
         network.requires_grad_(False)
     observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
     return AutonomousModel(rates, observer, encoder, decoder, selection, description)
+
+
+def fit_phase1(context: FitContext, pde_weight: float) -> AutonomousModel:
+    """:func:`fit_autonomous` with the profile's budget and the estimator's ``pde_weight``."""
+    return fit_autonomous(context, from_budget(Phase1Config, context, pde_weight=pde_weight))

@@ -8,6 +8,7 @@ Samples are drawn from the protocol's scored window.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -16,8 +17,9 @@ import torch
 from torch import nn
 
 from kkl_bench.estimator import FitContext
-from kkl_bench.kkl.autonomous import AutonomousModel
+from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1
 from kkl_bench.kkl.cache import CheckpointCache
+from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import ObserverData, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.windows import sliding_windows
@@ -79,6 +81,30 @@ def phase2_description(
 ) -> dict[str, Any]:
     """The cache description of a Phase-2 model built on ``model``."""
     return {"kind": kind, "phase1": model.description, "config": asdict(config), "params": params}
+
+
+def fit_phase2(
+    context: FitContext,
+    kind: str,
+    params: dict[str, Any],
+    pde_weight: float,
+    build: Callable[[AutonomousModel, Phase2Config], nn.Module],
+    train: Callable[[FitContext, AutonomousModel, Phase2Config, nn.Module], dict[str, Any]],
+) -> tuple[AutonomousModel, Phase2Config, nn.Module, dict[str, Any]]:
+    """Phase 1 (shared, cached), then a Phase-2 module built and trained on it (cached).
+
+    ``build(model, config)`` makes the module (under the run's seed);
+    ``train(context, model, config, module)`` trains it and returns a log.
+    Returns the Phase-1 model, the Phase-2 config, the module and the log.
+    """
+    model = fit_phase1(context, pde_weight)
+    config = from_budget(Phase2Config, context)
+    with torch.random.fork_rng():
+        torch.manual_seed(context.seed)
+        module = build(model, config)
+    description = phase2_description(model, kind, config, params)
+    log = load_or_train(context, description, module, lambda: train(context, model, config, module))
+    return model, config, module, log
 
 
 def load_or_train(
