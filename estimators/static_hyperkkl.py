@@ -110,16 +110,13 @@ class StaticHyperKKL(Estimator):
 
     def estimate(self, t, y, u):
         self.check_fitted()
-        observer, encoder = self.model_.observer, self.model_.encoder
+        encoder = self.model_.encoder
         contexts = self.contexts(u)
-        gain = observer.injection_gain * to_numpy(encoder.out_std)  # psi is in normalized units
-        z = np.empty((y.shape[0], y.shape[1], observer.n_z))
-        z[:, 0] = observer.initial_state(y[:, 0])
-        with torch.no_grad():
-            for k in range(y.shape[1] - 1):
-                z_tilde = (
-                    torch.as_tensor(z[:, k], dtype=torch.float32) - encoder.out_mean
-                ) / encoder.out_std
-                injection = u[:, k] * to_numpy(self.injection_(z_tilde, contexts[:, k]))
-                z[:, k + 1] = observer.step(z[:, k], y[:, k], y[:, k + 1]) + injection @ gain.T
-        return self.model_.decode(z)
+        scale = to_numpy(encoder.out_std)  # psi is in normalized latent units
+
+        def injection(k, z):
+            z_tilde = (torch.as_tensor(z, dtype=torch.float32) - encoder.out_mean) / encoder.out_std
+            with torch.no_grad():
+                return u[:, k] * scale * to_numpy(self.injection_(z_tilde, contexts[:, k]))
+
+        return self.model_.decode(self.model_.observer.run(y, injection))

@@ -13,6 +13,8 @@ from the top block row ``[Phi, Gamma0, Gamma1]`` of
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.linalg import expm
 
@@ -74,10 +76,19 @@ class LatentObserver:
         """``z: (batch, n_z)``, ``y, y_next: (batch, n_y)`` -> ``(batch, n_z)`` (no injection)."""
         return z @ self.phi.T + y @ self.gamma0.T + (y_next - y) @ self.gamma1.T
 
-    def run(self, y: np.ndarray) -> np.ndarray:
-        """Latent trajectories ``(batch, steps, n_z)`` driven by ``y: (batch, steps, n_y)``."""
+    def run(
+        self, y: np.ndarray, injection: Callable[[int, np.ndarray], np.ndarray] | None = None
+    ) -> np.ndarray:
+        """Latent trajectories ``(batch, steps, n_z)`` driven by ``y: (batch, steps, n_y)``.
+
+        ``injection(k, z_k)``, if given, returns ``phi_k: (batch, n_z)``, held
+        over ``[t_k, t_{k+1})``; it sees only ``z_k`` (and whatever up to
+        sample k its owner knows), so the recursion stays causal.
+        """
         z = np.empty((y.shape[0], y.shape[1], self.n_z))
         z[:, 0] = self.initial_state(y[:, 0])
         for k in range(y.shape[1] - 1):
             z[:, k + 1] = self.step(z[:, k], y[:, k], y[:, k + 1])
+            if injection is not None:
+                z[:, k + 1] += injection(k, z[:, k]) @ self.injection_gain.T
         return z
