@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from kkl_bench.estimator import Estimator
 from kkl_bench.kkl.autonomous import fit_phase1
+from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.registry import estimators
 
 
 @estimators.register("autonomous_kkl")
-class AutonomousKKL(Estimator):
+class AutonomousKKL(KKLEstimator):
     """``z' = A z + B y``, ``x_hat = T*(z)``, with ``T`` and ``T*`` trained on unforced data.
 
     Parameters

@@ -20,10 +20,10 @@ from dataclasses import dataclass
 
 import torch
 
-from kkl_bench.estimator import Estimator
 from kkl_bench.kkl.autonomous import fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import observer_data
+from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.inputs import ConstantFamily, MultiSineFamily, SineFamily, SquareFamily
 from kkl_bench.kkl.phase2 import Phase2Config, load_or_train, phase2_description
 from kkl_bench.registry import estimators
@@ -58,7 +58,7 @@ def plateaued(losses: list[float], patience: int, threshold: float) -> bool:
 
 
 @estimators.register("curriculum_kkl")
-class CurriculumKKL(Estimator):
+class CurriculumKKL(KKLEstimator):
     """Autonomous observer whose decoder is fine-tuned level by level on forced data.
 
     Parameters

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from kkl_bench.estimator import Estimator
+from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.hyper import make_head
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
@@ -52,7 +52,7 @@ class HyperNetwork(nn.Module):
 
 
 @estimators.register("dynamic_hyperkkl")
-class DynamicHyperKKL(Estimator):
+class DynamicHyperKKL(KKLEstimator):
     """Frozen autonomous ``T``, ``T*`` with hypernetwork weight perturbations from the input window.
 
     Parameters

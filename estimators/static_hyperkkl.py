@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from kkl_bench.estimator import Estimator
+from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
 from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2, to_numpy
@@ -44,7 +44,7 @@ class Injection(nn.Module):
 
 
 @estimators.register("static_hyperkkl")
-class StaticHyperKKL(Estimator):
+class StaticHyperKKL(KKLEstimator):
     """Autonomous ``T``, ``T*`` plus ``phi = u psi(z, LSTM(u window))`` trained on ``dT/dx g``.
 
     Parameters

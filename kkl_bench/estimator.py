@@ -91,6 +91,14 @@ class Estimator(ABC):
         """Causal state estimates ``(batch, steps, n_x)`` from ``t: (steps,)``,
         ``y: (batch, steps, n_y)`` and ``u: (batch, steps, 1)``."""
 
+    def fit_report(self) -> dict[str, Any]:
+        """Facts about the fitted model worth keeping with every result (JSON-able).
+
+        For example the chosen latent eigenvalues or the map-quality numbers of
+        a learned observer. The default reports nothing.
+        """
+        return {}
+
     def check_fitted(self) -> FitContext:
         """The fit context, or a :class:`NotFittedError` naming the estimator."""
         context = getattr(self, "context_", None)

@@ -170,12 +170,15 @@ def run_system(
             yield cell
         return
     fit_time = time.perf_counter() - start
+    report = estimator.fit_report()
     for task in tasks:
         try:
             fields = {"status": "ok", **score(estimator, make_test_set(task, spec.profile.n_test))}
         except Exception as error:
             fields = {"status": "error", "error": f"estimate failed: {_error_text(error)}"}
-        cell = _cell(spec, estimator, estimator_name, task, fit_time_s=fit_time, **fields)
+        cell = _cell(
+            spec, estimator, estimator_name, task, fit_time_s=fit_time, fit_report=report, **fields
+        )
         write_cell(spec.results_dir, cell)
         yield cell
 

@@ -52,6 +52,7 @@ class CellResult:
     nrmse: list[float] = field(default_factory=list)
     per_state_rmse: list[list[float]] = field(default_factory=list)
     fit_time_s: float = math.nan
+    fit_report: dict[str, Any] = field(default_factory=dict)
     estimate_us_per_step: float = math.nan
     error: str = ""
     protocol: str = ""

@@ -1,10 +1,12 @@
 """The KKL toolkit and plugins against known answers."""
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
+from kkl_bench.estimators.injection_kkl import exact_injection
 from scipy.integrate import solve_ivp
 from scipy.linalg import solve_sylvester
 
@@ -152,28 +154,73 @@ def test_unknown_head_lists_the_valid_ones():
         make_head("dense", [], 4, 8, 2)
 
 
-def test_autonomous_kkl_learns_the_sylvester_map_of_a_linear_system(tmp_path):
+@pytest.fixture(scope="module")
+def harmonic(tmp_path_factory):
+    """autonomous_kkl and injection_kkl fitted on the harmonic oscillator (one shared Phase 1)."""
+    context = context_for(
+        HarmonicOscillator(),
+        {**TINY, "encoder_steps": 1500, "decoder_steps": 800, "rate_candidates": [[1.0, 5.0]]},
+        tmp_path_factory.mktemp("harmonic-cache"),
+    )
+    return {
+        name: estimators.get(name)().fit(context) for name in ("autonomous_kkl", "injection_kkl")
+    }
+
+
+def harmonic_data(regime, seed=7):
     system = HarmonicOscillator()
-    budget = {**TINY, "encoder_steps": 1500, "decoder_steps": 800, "rate_candidates": [[1.0, 5.0]]}
-    estimator = estimators.get("autonomous_kkl")().fit(context_for(system, budget, tmp_path))
-    a, b = estimator.model_.observer.a, estimator.model_.observer.b
-    exact = solve_sylvester(a, -system.F, -b @ np.array([[1.0, 0.0]]))  # A M - M F = -B H
-    x = np.random.default_rng(1).uniform(-1, 1, (256, 2))
-    x = (
-        x
-        / np.linalg.norm(x, axis=1, keepdims=True)
-        * np.sqrt(np.random.default_rng(2).uniform(0.3, 1.0, (256, 1)))
+    return TrainingData(system, DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed).simulate(
+        regimes.get(regime)(), 4, stream="check"
     )
+
+
+def test_autonomous_kkl_learns_the_sylvester_map_of_a_linear_system(harmonic):
+    model = harmonic["autonomous_kkl"].model_
+    exact = solve_sylvester(
+        model.observer.a, -HarmonicOscillator.F, -model.observer.b @ np.array([[1.0, 0.0]])
+    )  # A M - M F = -B H
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-1, 1, (256, 2))
+    x = x / np.linalg.norm(x, axis=1, keepdims=True) * np.sqrt(rng.uniform(0.3, 1.0, (256, 1)))
     with torch.no_grad():
-        learned = estimator.model_.encoder(torch.as_tensor(x, dtype=torch.float32)).double().numpy()
-    relative = np.linalg.norm(learned - x @ exact.T) / np.linalg.norm(x @ exact.T)
-    assert relative < 0.05
-    data = TrainingData(system, DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=7).simulate(
-        regimes.get("zero")(), 4, stream="check"
-    )
-    error = np.abs(estimator.estimate(data.t, data.y, data.u) - data.x)
+        learned = model.encoder(torch.as_tensor(x, dtype=torch.float32)).double().numpy()
+    assert np.linalg.norm(learned - x @ exact.T) / np.linalg.norm(x @ exact.T) < 0.05
+    data = harmonic_data("zero")
+    error = np.abs(harmonic["autonomous_kkl"].estimate(data.t, data.y, data.u) - data.x)
     assert error[:, :100].mean() > 2 * error[:, 500:].mean()  # the estimate converges
     assert error[:, 500:].mean() < 0.05
+
+
+def test_injection_of_an_exact_linear_map_is_exactly_m_g():
+    """With ``T(x) = M x``, the injection ``dT/dx(T*(z)) g u`` is ``M g u`` whatever ``z``."""
+    rates = spread_eigenvalues(5, 1.0, 5.0)
+    a, b = latent_matrices(rates)
+    exact = solve_sylvester(a, -HarmonicOscillator.F, -b @ np.array([[1.0, 0.0]]))
+    encoder = torch.nn.Linear(2, 5, bias=False)
+    decoder = torch.nn.Linear(5, 2, bias=False)
+    with torch.no_grad():
+        encoder.weight.copy_(torch.as_tensor(exact))
+        decoder.weight.copy_(torch.as_tensor(np.linalg.pinv(exact)))
+    model = SimpleNamespace(encoder=encoder, decoder=decoder)
+    u = np.array([[[0.5]], [[-2.0]]])
+    phi = exact_injection(model, HarmonicOscillator.g, u)(
+        0, np.random.default_rng(0).normal(size=(2, 5))
+    )
+    np.testing.assert_allclose(
+        phi, u[:, 0] * (exact @ HarmonicOscillator.g).astype(np.float32), rtol=1e-6
+    )
+
+
+def test_injection_kkl_converges_under_input_where_the_autonomous_observer_cannot(harmonic):
+    data = harmonic_data("square")
+    late = slice(500, None)
+    injected = np.abs(harmonic["injection_kkl"].estimate(data.t, data.y, data.u) - data.x)[
+        :, late
+    ].mean()
+    ignoring = np.abs(harmonic["autonomous_kkl"].estimate(data.t, data.y, data.u) - data.x)[
+        :, late
+    ].mean()
+    assert injected < 0.1 and injected < ignoring / 2
 
 
 @pytest.fixture(scope="module")
@@ -181,11 +228,17 @@ def fitted_family(tmp_path_factory):
     """The four KKL plugins fitted with a tiny budget on duffing, sharing one cache."""
     cache = tmp_path_factory.mktemp("kkl-cache")
     context = context_for(systems.get("duffing")(), TINY, cache)
-    names = ("autonomous_kkl", "static_hyperkkl", "dynamic_hyperkkl", "curriculum_kkl")
+    names = (
+        "autonomous_kkl",
+        "static_hyperkkl",
+        "dynamic_hyperkkl",
+        "curriculum_kkl",
+        "injection_kkl",
+    )
     return {name: estimators.get(name)().fit(context) for name in names}
 
 
-@pytest.mark.parametrize("name", ["static_hyperkkl", "dynamic_hyperkkl"])
+@pytest.mark.parametrize("name", ["static_hyperkkl", "dynamic_hyperkkl", "injection_kkl"])
 def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, name):
     data = TrainingData(systems.get("duffing")(), DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=3).simulate(
         regimes.get("zero")(), 3, stream="check", n_samples=300
@@ -199,6 +252,20 @@ def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, na
         fitted_family[name].estimate(forced.t, forced.y, forced.u),
         fitted_family["autonomous_kkl"].estimate(forced.t, forced.y, forced.u),
     )
+
+
+def test_fit_report_records_rates_selection_quality_and_log(fitted_family):
+    report = fitted_family["dynamic_hyperkkl"].fit_report()
+    assert len(report["latent_rates"]) == 5 and set(report["rate_selection"]) == {"1-5", "2-10"}
+    assert set(report["map_quality"]) == {
+        "reconstruction_rmse_unforced",
+        "reconstruction_rmse_forced",
+        "pde_residual_unforced",
+        "pde_residual_forced",
+    }
+    assert all(np.isfinite(value) and value >= 0 for value in report["map_quality"].values())
+    assert "final_loss" in report["training_log"]
+    assert "training_log" not in fitted_family["autonomous_kkl"].fit_report()
 
 
 def test_curriculum_walks_every_level_and_records_it(fitted_family):

@@ -89,6 +89,16 @@ class AutonomousModel:
     selection: dict[str, float] = field(default_factory=dict)
     description: dict = field(default_factory=dict)
     """The cache description that determines this model (extended by later phases' keys)."""
+    quality: dict[str, float] = field(default_factory=dict)
+    """Map-quality numbers on held-out training-stream states (see :func:`map_quality`)."""
+
+    def report(self) -> dict:
+        """What a KKL plugin records with its results: rates, their selection, map quality."""
+        return {
+            "latent_rates": self.rates.tolist(),
+            "rate_selection": self.selection,
+            "map_quality": self.quality,
+        }
 
     def decode(self, z: np.ndarray) -> np.ndarray:
         """``T*(z)``: ``z: (..., n_z)`` -> ``(..., n_x)`` (float64 numpy)."""
@@ -301,7 +311,36 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
     for network in (encoder, decoder):
         network.requires_grad_(False)
     observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
-    return AutonomousModel(rates, observer, encoder, decoder, selection, description)
+    model = AutonomousModel(rates, observer, encoder, decoder, selection, description)
+    model.quality = map_quality(context, model)
+    return model
+
+
+def map_quality(context: FitContext, model: AutonomousModel, n: int = 8) -> dict[str, float]:
+    """How well ``T`` solves the PDE and ``T*`` inverts it, on held-out states.
+
+    States are the settled samples of ``n`` unforced and ``n`` forced
+    trajectories from the x0 box (their own training streams). Returns
+    ``reconstruction_rmse_{unforced,forced}``: RMS of ``|x - T*(T(x))|`` (state
+    units), and ``pde_residual_{unforced,forced}``: RMS of the autonomous PDE
+    residual ``dT/dx f - A T - B h`` relative to the RMS of ``A T + B h``.
+    These bound what any observer built on the two maps can reach.
+    """
+    system = context.system
+    a, b = (_tensor(m) for m in (model.observer.a, model.observer.b))
+    quality = {}
+    for label, inputs in (("unforced", regimes.get("zero")()), ("forced", FORCED_TRAINING)):
+        data = observer_data(context, model.observer, inputs, n, f"kkl/quality/{label}")
+        x = _tensor(data.scored()[0])
+        with torch.no_grad():
+            reconstruction = model.decoder(model.encoder(x)) - x
+            residual = pde_residual(model.encoder, x, system.f(x), system.h(x), a, b)
+            target = model.encoder(x) @ a.T + system.h(x) @ b.T
+        quality[f"reconstruction_rmse_{label}"] = reconstruction.pow(2).sum(-1).mean().sqrt().item()
+        quality[f"pde_residual_{label}"] = (
+            (residual.pow(2).sum(-1).mean() / target.pow(2).sum(-1).mean()).sqrt().item()
+        )
+    return quality
 
 
 def fit_phase1(context: FitContext, pde_weight: float) -> AutonomousModel:
