@@ -102,6 +102,7 @@ def test_builtins_are_discovered_through_their_entry_points():
         "curriculum_kkl",
         "static_hyperkkl",
         "dynamic_hyperkkl",
+        "injection_kkl",
     } <= declared
     assert {point.name for point in importlib.metadata.entry_points(group="kkl_bench.systems")} >= {
         "duffing",
