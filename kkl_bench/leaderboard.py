@@ -67,6 +67,7 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
                 "estimate_us_per_step": scored["estimate_us_per_step"].mean(),
                 "task": cells["task"].iloc[0],
                 "protocol": cells["protocol"].iloc[0],
+                **_map_quality(cells),
             }
         )
     summary = pd.DataFrame(rows)
@@ -77,6 +78,19 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
         paper["n_diverged"] = 0
         summary = pd.concat([summary, paper], ignore_index=True)
     return summary
+
+
+MAP_QUALITY = ("reconstruction_rmse_unforced", "reconstruction_rmse_forced", "pde_residual_forced")
+"""Map-quality numbers a KKL estimator reports (see :func:`kkl_bench.kkl.autonomous.map_quality`)."""
+
+
+def _map_quality(cells: pd.DataFrame) -> dict[str, float]:
+    """The map-quality numbers in the cells' fit reports (NaN where none are reported)."""
+    reports = cells["fit_report"] if "fit_report" in cells else pd.Series([{}] * len(cells))
+    quality = next(
+        (r["map_quality"] for r in reports if isinstance(r, dict) and "map_quality" in r), {}
+    )
+    return {key: quality.get(key, math.nan) for key in MAP_QUALITY}
 
 
 def _format_cell(row: pd.Series, best: bool, bold: tuple[str, str]) -> str:
@@ -187,23 +201,34 @@ def _booktabs(latex: str) -> str:
 
 
 def cost_table(summary: pd.DataFrame) -> str:
-    """Markdown table of fit time and estimation cost per (estimator, system)."""
+    """Markdown table per (estimator, system): fit time, estimation cost, NRMSE and, for
+    KKL estimators, the quality of their maps (which bounds what they can reach)."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
-    grouped = ours.groupby(["estimator", "system"], sort=False).agg(
+    grouped = ours.groupby(["estimator", "system"]).agg(
         fit_time_s=("fit_time_s", "mean"),
         estimate_us_per_step=("estimate_us_per_step", "mean"),
         nrmse_mean=("nrmse_mean", "mean"),
+        **{key: (key, "first") for key in MAP_QUALITY},
     )
+    order = {system: i for i, system in enumerate(_in_paper_order(ours["system"], SYSTEM_TITLES))}
+    rows = grouped.reset_index().sort_values(
+        ["estimator", "system"], key=lambda c: c.map(order) if c.name == "system" else c
+    )
+    rows = rows.astype(object).where(rows.notna(), None)
     return tabulate(
-        grouped.reset_index(),
+        rows,
         headers=[
             "Estimator",
             "System",
             "Fit time (s)",
             "Estimation (µs / trajectory-step)",
             "NRMSE (mean over regimes)",
+            "|x - T*(T(x))| unforced",
+            "|x - T*(T(x))| forced",
+            "PDE residual (rel.) forced",
         ],
         tablefmt="github",
         floatfmt=".3g",
         showindex=False,
+        missingval="",
     )
