@@ -1,8 +1,9 @@
 """One way to run independent jobs: an unordered joblib generator, on local processes or Dask.
 
 ``loky`` (the default) runs jobs in worker processes on this machine, each
-limited to ``cores // jobs`` threads (BLAS, OpenMP and torch) so that N
-workers do not oversubscribe the cores; with one job it runs them in this
+limited to ``cores // jobs`` threads (BLAS, OpenMP and torch, through the
+environment loky gives its workers) so that N workers do not oversubscribe
+the cores; with one job it runs them in this
 process. ``dask`` sends the same jobs through joblib's Dask backend to a
 ``distributed`` cluster: the scheduler at ``scheduler`` if given (which is how
 SLURM or PBS clusters are reached, through dask-jobqueue), else a
