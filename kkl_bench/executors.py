@@ -55,7 +55,11 @@ def _dask_client(jobs: int, scheduler: str | None) -> Iterator[None]:
         cluster = None
     else:
         cluster = LocalCluster(
-            n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=jobs,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
         )
         client = Client(cluster)
     try:
