@@ -28,14 +28,14 @@ from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import Box, ObserverData, burn_in_steps, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
-from kkl_bench.kkl.networks import NormalizedMLP
+from kkl_bench.kkl.networks import NormalizedMLP, seeded
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import pde_residual
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.signals import InputFamily
 from kkl_bench.registry import regimes
 
-TOOLKIT_VERSION = 2
+TOOLKIT_VERSION = 3
 """Bump when a change to this module changes what a given configuration trains."""
 
 RATE_CANDIDATES = ((1.0, 5.0), (2.0, 10.0), (5.0, 20.0), (10.0, 40.0))
@@ -197,7 +197,8 @@ def _select_rates(
             "kkl/validation",
         )
         x, z = (_tensor(a) for a in train.scored())
-        decoder = NormalizedMLP(system.n_z, system.n_x, config.hidden, config.depth)
+        with seeded(context.seed):
+            decoder = NormalizedMLP(system.n_z, system.n_x, config.hidden, config.depth)
         decoder.set_normalization(z, x)
         train_decoder(
             decoder,
@@ -265,8 +266,7 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
         "config": asdict(config),
     }
     cache = CheckpointCache(context.cache_dir)
-    with torch.random.fork_rng():
-        torch.manual_seed(context.seed)
+    with seeded(context.seed):
         encoder, decoder = _networks(system.n_x, system.n_z, config)
     stored = cache.load("kkl-phase1", description)
     if stored is not None:

@@ -9,14 +9,23 @@ with ``baddbmm``: weights are generated per window, never per sample.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 from torch import nn
 
 LayerDeltas = Sequence[tuple[torch.Tensor, torch.Tensor]]
 """Per-layer ``(dW: (windows, out, in), db: (windows, out))`` perturbations."""
+
+
+@contextlib.contextmanager
+def seeded(seed: int) -> Iterator[None]:
+    """Initialize networks inside this block from ``seed``, leaving the global RNG untouched."""
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        yield
 
 
 class NormalizedMLP(nn.Module):

@@ -22,6 +22,7 @@ from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import ObserverData, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
+from kkl_bench.kkl.networks import seeded
 from kkl_bench.kkl.windows import sliding_windows
 from kkl_bench.protocol.metrics import steady_state_start
 
@@ -99,8 +100,7 @@ def fit_phase2(
     """
     model = fit_phase1(context, pde_weight)
     config = from_budget(Phase2Config, context)
-    with torch.random.fork_rng():
-        torch.manual_seed(context.seed)
+    with seeded(context.seed):
         module = build(model, config)
     description = phase2_description(model, kind, config, params)
     log = load_or_train(context, description, module, lambda: train(context, model, config, module))

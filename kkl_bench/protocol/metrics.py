@@ -34,31 +34,32 @@ def diverged(x_hat: np.ndarray) -> np.ndarray:
 
 
 def _with_divergence(values: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
+    """``values`` with ``inf`` for every trajectory of the *whole* ``x_hat`` that diverged."""
     return np.where(diverged(x_hat), np.inf, values)
 
 
 def per_state_rmse(x: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """``(batch, n_x)`` RMSE of each state component over the steady state."""
-    x, x_hat = _steady(x, x_hat)
+    x_steady, x_hat_steady = _steady(x, x_hat)
     with np.errstate(invalid="ignore", over="ignore"):
-        values = np.sqrt(np.mean((x - x_hat) ** 2, axis=1))
+        values = np.sqrt(np.mean((x_steady - x_hat_steady) ** 2, axis=1))
     return np.where(diverged(x_hat)[:, None], np.inf, values)
 
 
 def rmse(x: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """``(batch,)`` RMSE over steady-state samples and all state components."""
-    x, x_hat = _steady(x, x_hat)
+    x_steady, x_hat_steady = _steady(x, x_hat)
     with np.errstate(invalid="ignore", over="ignore"):
-        values = np.sqrt(np.mean((x - x_hat) ** 2, axis=(1, 2)))
+        values = np.sqrt(np.mean((x_steady - x_hat_steady) ** 2, axis=(1, 2)))
     return _with_divergence(values, x_hat)
 
 
 def smape(x: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """``(batch,)`` element-wise SMAPE in percent; a 0/0 term counts as 0."""
-    x, x_hat = _steady(x, x_hat)
+    x_steady, x_hat_steady = _steady(x, x_hat)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        denominator = (np.abs(x) + np.abs(x_hat)) / 2.0
-        terms = np.where(denominator == 0.0, 0.0, np.abs(x - x_hat) / denominator)
+        denominator = (np.abs(x_steady) + np.abs(x_hat_steady)) / 2.0
+        terms = np.where(denominator == 0.0, 0.0, np.abs(x_steady - x_hat_steady) / denominator)
         values = 100.0 * np.mean(terms, axis=(1, 2))
     return _with_divergence(values, x_hat)
 
