@@ -63,11 +63,6 @@ class Trajectories:
     def __len__(self) -> int:
         return self.x.shape[0]
 
-    def __getitem__(self, index) -> Trajectories:
-        """A sub-batch; ``index`` selects along the batch axis."""
-        index = np.atleast_1d(np.arange(len(self))[index])
-        return Trajectories(self.t, self.u[index], self.x[index], self.y[index])
-
 
 def simulate(
     system: System,
