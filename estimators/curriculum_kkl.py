@@ -9,8 +9,9 @@ observer, true state) over the scored window: what ``T*`` sees at test time.
 An epoch is ``curriculum_epoch_steps`` Adam steps; the level advances when the
 best loss of the last ``patience`` epochs improves on the best before them by
 less than ``threshold`` (relative), after at least ``min_epochs`` and at most
-``max_epochs`` epochs. The learning rate restarts at each level; no unforced
-data are replayed (as in the paper).
+``max_epochs`` epochs. Each epoch is a cosine-annealed Adam run from
+lr 1e-3 (warm restarts, so the rate also restarts at each level); no
+unforced data are replayed (as in the paper).
 """
 
 from __future__ import annotations

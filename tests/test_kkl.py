@@ -254,6 +254,21 @@ def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, na
     )
 
 
+def test_low_rank_heads_also_reproduce_the_autonomous_observer_at_zero_input(
+    fitted_family, tmp_path
+):
+    context = context_for(systems.get("duffing")(), TINY, tmp_path)
+    low_rank = estimators.get("dynamic_hyperkkl")(head="lowrank", rank=4).fit(context)
+    data = TrainingData(systems.get("duffing")(), DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=3).simulate(
+        regimes.get("zero")(), 2, stream="check", n_samples=200
+    )
+    np.testing.assert_array_equal(
+        low_rank.estimate(data.t, data.y, data.u),
+        fitted_family["autonomous_kkl"].estimate(data.t, data.y, data.u),
+    )
+    assert low_rank.get_params()["head"] == "lowrank"
+
+
 def test_fit_report_records_rates_selection_quality_and_log(fitted_family):
     report = fitted_family["dynamic_hyperkkl"].fit_report()
     assert len(report["latent_rates"]) == 5 and set(report["rate_selection"]) == {"1-5", "2-10"}
