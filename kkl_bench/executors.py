@@ -29,12 +29,11 @@ def threads_per_worker(jobs: int) -> int:
     return max(1, (os.cpu_count() or 1) // jobs)
 
 
-def limited(function: Callable, threads: int | None) -> Callable:
-    """``function`` run with BLAS/OpenMP and torch limited to ``threads`` (None: no limit)."""
+def limited(function: Callable, threads: int) -> Callable:
+    """``function`` run with BLAS/OpenMP and torch limited to ``threads`` (for Dask workers,
+    whose environment this package does not set)."""
 
     def call(*args: Any) -> Any:
-        if threads is None:
-            return function(*args)
         import torch
 
         torch.set_num_threads(threads)
@@ -99,8 +98,11 @@ def execute(
         for args in arguments:
             yield function(*args)
         return
-    task = limited(function, threads_per_worker(jobs))
-    with parallel_config(backend="loky", n_jobs=jobs):
+    # loky sets OMP/MKL/OpenBLAS thread counts in each worker's environment when
+    # it starts them; torch reads them when (and only if) a job imports it
+    with parallel_config(
+        backend="loky", n_jobs=jobs, inner_max_num_threads=threads_per_worker(jobs)
+    ):
         yield from Parallel(return_as="generator_unordered")(
-            delayed(task)(*args) for args in arguments
+            delayed(function)(*args) for args in arguments
         )
