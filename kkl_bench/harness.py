@@ -121,7 +121,8 @@ def score(estimator: Estimator, test_set: TestSet) -> dict:
     }
 
 
-def _cell(spec: RunSpec, estimator: Estimator, name: str, task: Task, **fields) -> CellResult:
+def _cell(spec: RunSpec, name: str, params: dict, task: Task, **fields) -> CellResult:
+    """The record of ``task``'s cell for estimator ``name`` (hyperparameters ``params``)."""
     test_set = make_test_set(task, spec.profile.n_test)
     return CellResult(
         estimator=name,
@@ -131,7 +132,7 @@ def _cell(spec: RunSpec, estimator: Estimator, name: str, task: Task, **fields) 
         profile=spec.profile.name,
         seed=spec.seed,
         n_test=spec.profile.n_test,
-        estimator_params=estimator.get_params(),
+        estimator_params=params,
         protocol=PROTOCOL_ID,
         test_set_fingerprint=test_set.fingerprint,
         stream_fingerprint=test_set.stream_fingerprint,
@@ -160,8 +161,8 @@ def run_system(
         for task in tasks:
             cell = _cell(
                 spec,
-                estimator,
                 estimator_name,
+                estimator.get_params(),
                 task,
                 status="error",
                 error=f"fit failed: {_error_text(error)}",
@@ -177,7 +178,13 @@ def run_system(
         except Exception as error:
             fields = {"status": "error", "error": f"estimate failed: {_error_text(error)}"}
         cell = _cell(
-            spec, estimator, estimator_name, task, fit_time_s=fit_time, fit_report=report, **fields
+            spec,
+            estimator_name,
+            estimator.get_params(),
+            task,
+            fit_time_s=fit_time,
+            fit_report=report,
+            **fields,
         )
         write_cell(spec.results_dir, cell)
         yield cell
@@ -228,18 +235,12 @@ def _lost_cells(spec: RunSpec, job: Job, error: BaseException) -> list[CellResul
     for regime in job.regimes:
         done = _done(spec, job.estimator, job.system, regime)
         if done is None:
-            task = Task(job.system, regime)
-            done = CellResult(
-                estimator=job.estimator,
-                system=job.system,
-                regime=regime,
-                task=task.id,
-                profile=spec.profile.name,
-                seed=spec.seed,
+            done = _cell(
+                spec,
+                job.estimator,
+                {},
+                Task(job.system, regime),
                 status="error",
-                n_test=spec.profile.n_test,
-                protocol=PROTOCOL_ID,
-                provenance=provenance(),
                 error=f"not completed: the run stopped ({type(error).__name__}: {error})",
             )
             write_cell(spec.results_dir, done)

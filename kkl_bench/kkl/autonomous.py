@@ -64,19 +64,6 @@ class Phase1Config:
     ``"covering"``: half of them start in a box covering the states that forced
     training trajectories reach (see :func:`training_boxes`)."""
 
-    @classmethod
-    def from_context(cls, context: FitContext, **overrides) -> Phase1Config:
-        budget = dict(context.budget)
-        hidden = budget.get("hidden", cls.hidden)
-        if isinstance(hidden, dict):
-            hidden = hidden.get(context.system.name, hidden.get("default", cls.hidden))
-        known = {
-            key: budget[key]
-            for key in cls.__dataclass_fields__
-            if key in budget and key != "hidden"
-        }
-        return cls(**{**known, "hidden": int(hidden), **overrides})
-
 
 @dataclass
 class AutonomousModel:
