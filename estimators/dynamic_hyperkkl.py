@@ -25,7 +25,7 @@ from torch import nn
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.hyper import make_head
 from kkl_bench.kkl.optimize import minimize
-from kkl_bench.kkl.pde import directional_derivative
+from kkl_bench.kkl.pde import directional_derivative, normalized_field_rms
 from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
 from kkl_bench.kkl.windows import WindowEncoder, is_active, sliding_windows
 from kkl_bench.registry import estimators
@@ -101,9 +101,7 @@ class DynamicHyperKKL(KKLEstimator):
             torch.as_tensor(m, dtype=torch.float32) for m in (model.observer.a, model.observer.b)
         )
         g = torch.as_tensor(system.g, dtype=torch.float32)
-        field_scale = (
-            (system.f(pool) / encoder.in_std).pow(2).sum(-1).mean().sqrt() * encoder.out_std
-        ).clamp_min(1e-6)
+        field_scale = normalized_field_rms(encoder, system.f(pool))
         generator = torch.Generator().manual_seed(context.seed)
         n_windows = max(1, config.phase2_batch // config.collocation_points)
 
@@ -131,14 +129,15 @@ class DynamicHyperKKL(KKLEstimator):
             residual = (
                 dt_field + (t_next - t_now) / context.dt - t_now @ a.T - system.h(states) @ b.T
             )
-            reconstruction = (decoder(t_now, phi_now) - states) / decoder.out_std
-            inference = (
+            reconstruction = decoder.output_difference(decoder(t_now, phi_now) - states)
+            inference = decoder.output_difference(
                 decoder(z_observed[trajectory, step].unsqueeze(1), phi_now) - states[:, :1]
-            ) / decoder.out_std
+            )
+            normalized_residual = encoder.output_difference(residual) / field_scale
             return (
                 inference.pow(2).sum(-1).mean()
                 + reconstruction.pow(2).sum(-1).mean()
-                + self.pde_weight * (residual / field_scale).pow(2).sum(-1).mean()
+                + self.pde_weight * normalized_residual.pow(2).sum(-1).mean()
             )
 
         losses = minimize(

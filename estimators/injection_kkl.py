@@ -5,25 +5,59 @@ autonomous PDE then ``z = T(x)`` obeys ``dz/dt = A z + B y + dT/dx(x) g u``
 (the paper's stationary approach; Bernard and Andrieu 2019). With learned
 maps the injection is evaluated at the decoded estimate,
 ``phi_k = dT/dx(T*(z_k)) g u_k``: one forward-mode JVP of the encoder along
-``g``, no extra training. The linear part is integrated exactly over each
-sample (first-order hold of ``y``) and ``phi_k`` is held over the step
-(exponential Euler), so zero input gives exactly ``autonomous_kkl``. It uses
-the same cached Phase-1 model as the other KKL plugins.
+``g``. The linear part is integrated exactly over each sample (first-order
+hold of ``y``) and ``phi_k`` is held over the step (exponential Euler).
+
+The maps are the cached Phase-1 ``T`` and ``T*`` of ``autonomous_kkl``. The
+learned maps are never exact, so with ``adapt`` (the default) two steps
+follow, both on training streams:
+
+1. the injection is scaled by a gain in [0, 1], the one of
+   ``injection_gains`` with the lowest RMSE on forced validation
+   trajectories: an encoder whose Jacobian is poor (Lorenz) does less harm;
+2. a copy of ``T*`` is fine-tuned on the latent states this observer itself
+   produces along forced and unforced training trajectories
+   (``adaptation_rounds`` rounds, since those states depend on the decoder
+   through the injection).
+
+Without ``adapt`` (the pure stationary observer, gain 1), zero input gives
+exactly ``autonomous_kkl``.
 """
 
 from __future__ import annotations
 
+import copy
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
-from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1
+from kkl_bench.estimator import FitContext
+from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1, train_decoder
+from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.estimator import KKLEstimator
+from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.pde import directional_derivative
-from kkl_bench.registry import estimators
+from kkl_bench.kkl.phase2 import load_or_train, phase2_description
+from kkl_bench.protocol.metrics import steady_state_start
+from kkl_bench.registry import estimators, regimes
 
 
-def exact_injection(model: AutonomousModel, g: np.ndarray, u: np.ndarray):
-    """``injection(k, z_k) = dT/dx(T*(z_k)) g u_k`` for :meth:`LatentObserver.run`.
+@dataclass(frozen=True)
+class AdaptationConfig:
+    """Budget of the adaptation (read with :func:`kkl_bench.kkl.config.from_budget`)."""
+
+    phase2_trajectories: int = 32
+    """Training trajectories of each kind (unforced, forced); half as many validate the gain."""
+    adaptation_steps: int = 2000
+    """Adam steps over all rounds."""
+    adaptation_rounds: int = 2
+    injection_gains: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
+    batch: int = 1024
+
+
+def exact_injection(model: AutonomousModel, g: np.ndarray, u: np.ndarray, gain: float = 1.0):
+    """``injection(k, z_k) = gain dT/dx(T*(z_k)) g u_k`` for :meth:`LatentObserver.run`.
 
     ``u: (batch, steps, 1)``; returns ``(batch, n_z)`` arrays (float64).
     """
@@ -33,9 +67,81 @@ def exact_injection(model: AutonomousModel, g: np.ndarray, u: np.ndarray):
         with torch.no_grad():
             x_hat = model.decoder(torch.as_tensor(z, dtype=torch.float32))
             _, along_g = directional_derivative(model.encoder, x_hat, direction.expand_as(x_hat))
-        return u[:, k] * along_g.double().numpy()
+        return gain * u[:, k] * along_g.double().numpy()
 
     return injection
+
+
+def _simulate(
+    context: FitContext, families: dict[str, object], n: int, stream: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``x, y, u`` of ``n`` training trajectories per input family, concatenated."""
+    parts = [
+        context.training.simulate(inputs, n, stream=f"{stream}/{label}")
+        for label, inputs in families.items()
+    ]
+    return tuple(np.concatenate([getattr(part, name) for part in parts]) for name in "xyu")
+
+
+def select_gain(
+    context: FitContext, model: AutonomousModel, config: AdaptationConfig
+) -> tuple[float, dict[str, float]]:
+    """The gain of ``config.injection_gains`` with the lowest RMSE on forced validation
+    trajectories (scored window), and every gain's RMSE."""
+    x, y, u = _simulate(
+        context,
+        {"forced": FORCED_TRAINING},
+        max(1, config.phase2_trajectories // 2),
+        "kkl/adapt/validation",
+    )
+    start = steady_state_start(x.shape[1])
+    scores = {}
+    for gain in config.injection_gains:
+        x_hat = model.decode(
+            model.observer.run(y, exact_injection(model, context.system.g, u, gain))
+        )
+        scores[f"{gain:g}"] = float(np.sqrt(np.mean((x_hat[:, start:] - x[:, start:]) ** 2)))
+    best = min(config.injection_gains, key=lambda gain: scores[f"{gain:g}"])
+    return best, scores
+
+
+def adapt(context: FitContext, model: AutonomousModel, config: AdaptationConfig) -> dict:
+    """Choose the injection gain, then fine-tune ``model.decoder`` in place on the
+    injected observer's own latent states.
+
+    Each round runs the observer (with the current decoder in the injection)
+    on ``phase2_trajectories`` unforced and as many forced training
+    trajectories (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING`), then trains
+    the decoder on the pairs ``(z_k, x_k)`` of the scored window. Returns the
+    gain, its selection scores and the final loss of each round.
+    """
+    system = context.system
+    gain, scores = select_gain(context, model, config)
+    log = {"injection_gain": gain, "gain_selection": scores}
+    x, y, u = _simulate(
+        context,
+        {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING},
+        config.phase2_trajectories,
+        "kkl/adapt",
+    )
+    start = steady_state_start(x.shape[1])
+    states = torch.as_tensor(x[:, start:].reshape(-1, system.n_x), dtype=torch.float32)
+    generator = torch.Generator().manual_seed(context.seed)
+    model.decoder.requires_grad_(True)
+    for round_ in range(config.adaptation_rounds):
+        z = model.observer.run(y, exact_injection(model, system.g, u, gain))
+        latent = torch.as_tensor(z[:, start:].reshape(-1, z.shape[-1]), dtype=torch.float32)
+        losses = train_decoder(
+            model.decoder,
+            latent,
+            states,
+            config.adaptation_steps // config.adaptation_rounds,
+            config.batch,
+            generator,
+            f"{system.name}: adapting T* ({round_ + 1}/{config.adaptation_rounds})",
+        )
+        log[f"round {round_ + 1}"] = {"final_loss": float(np.mean(losses[-50:]))}
+    return log
 
 
 @estimators.register("injection_kkl")
@@ -45,18 +151,31 @@ class InjectionKKL(KKLEstimator):
     Parameters
     ----------
     pde_weight: weight of the PDE residual in Phase 1 (shared with ``autonomous_kkl``).
+    adapt: choose the injection gain and fine-tune ``T*`` on this observer's own
+        latent states (see the module); ``False`` is the pure stationary observer.
     """
 
     name = "injection_kkl"
 
-    def __init__(self, pde_weight: float = 1.0) -> None:
+    def __init__(self, pde_weight: float = 1.0, adapt: bool = True) -> None:
         self.pde_weight = pde_weight
+        self.adapt = adapt
 
     def fit(self, context):
-        self.model_ = fit_phase1(context, self.pde_weight)
+        model = fit_phase1(context, self.pde_weight)
+        self.gain_ = 1.0
+        if self.adapt:
+            model = copy.deepcopy(model)
+            config = from_budget(AdaptationConfig, context)
+            description = phase2_description(model, "kkl-injection", config, self.get_params())
+            self.log_ = load_or_train(
+                context, description, model.decoder, lambda: adapt(context, model, config)
+            )
+            self.gain_ = self.log_["injection_gain"]
+        self.model_ = model
         return super().fit(context)
 
     def estimate(self, t, y, u):
         context = self.check_fitted()
-        injection = exact_injection(self.model_, context.system.g, u)
+        injection = exact_injection(self.model_, context.system.g, u, self.gain_)
         return self.model_.decode(self.model_.observer.run(y, injection))

@@ -85,12 +85,11 @@ class StaticHyperKKL(KKLEstimator):
             states = x[trajectory, step]
             with torch.no_grad():
                 z, dz_along_g = directional_derivative(encoder, states, g.expand_as(states))
-                z_tilde = (z - encoder.out_mean) / encoder.out_std
+                z_tilde = encoder.normalized_output(z)
                 z_tilde = z_tilde + 0.02 * torch.randn(z_tilde.shape, generator=generator)
+                target = encoder.output_difference(dz_along_g)
             contexts = injection.window_encoder(samples.windows[trajectory, step])
-            return (
-                (injection(z_tilde, contexts) - dz_along_g / encoder.out_std).pow(2).sum(-1).mean()
-            )
+            return (injection(z_tilde, contexts) - target).pow(2).sum(-1).mean()
 
         losses = minimize(
             loss,
@@ -112,11 +111,11 @@ class StaticHyperKKL(KKLEstimator):
         self.check_fitted()
         encoder = self.model_.encoder
         contexts = self.contexts(u)
-        scale = to_numpy(encoder.out_std)  # psi is in normalized latent units
+        coloring = to_numpy(encoder.out_coloring)  # psi is in normalized latent units
 
         def injection(k, z):
-            z_tilde = (torch.as_tensor(z, dtype=torch.float32) - encoder.out_mean) / encoder.out_std
+            z_tilde = encoder.normalized_output(torch.as_tensor(z, dtype=torch.float32))
             with torch.no_grad():
-                return u[:, k] * scale * to_numpy(self.injection_(z_tilde, contexts[:, k]))
+                return u[:, k] * to_numpy(self.injection_(z_tilde, contexts[:, k])) @ coloring
 
         return self.model_.decode(self.model_.observer.run(y, injection))

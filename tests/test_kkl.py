@@ -12,10 +12,10 @@ from scipy.linalg import solve_sylvester
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl import autonomous, optimize
-from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous
+from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous, training_boxes
 from kkl_bench.kkl.hyper import ChunkedHead, LowRankHead, make_head
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
-from kkl_bench.kkl.networks import NormalizedMLP
+from kkl_bench.kkl.networks import NormalizedMLP, affine_normalization
 from kkl_bench.kkl.pde import pde_residual
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.system import MeasureOneState, stack
@@ -35,6 +35,7 @@ TINY = dict(
     lstm_hidden=8,
     curriculum_epoch_steps=5,
     max_epochs=6,
+    adaptation_steps=40,
 )
 
 
@@ -124,6 +125,45 @@ def test_pde_residual_by_jvp_equals_residual_by_explicit_jacobian():
     torch.testing.assert_close(by_jvp, explicit, rtol=1e-4, atol=1e-4)
 
 
+def test_whitening_gives_unit_covariance_and_colouring_inverts_it():
+    rng = np.random.default_rng(0)
+    mixing = np.array([[1.0, 0.999, 0.998], [0.0, 1e-1, 2e-1], [0.0, 0.0, 1e-2]])
+    samples = torch.as_tensor(rng.normal(size=(20000, 3)) @ mixing + 5.0)
+    mean, whitening, coloring = affine_normalization(samples, whiten=True)
+    whitened = (samples - mean.double()) @ whitening.double()
+    np.testing.assert_allclose(torch.cov(whitened.T).numpy(), np.eye(3), atol=2e-3)
+    np.testing.assert_allclose(
+        (whitening.double() @ coloring.double()).numpy(), np.eye(3), atol=1e-4
+    )
+    _, scaling, unscaling = affine_normalization(samples, whiten=False)
+    np.testing.assert_allclose(torch.diag(unscaling).numpy(), samples.std(0).numpy(), rtol=1e-6)
+    assert torch.count_nonzero(scaling - torch.diag(torch.diag(scaling))) == 0
+
+
+def test_whitening_floors_directions_without_variance():
+    rng = np.random.default_rng(0)
+    plane = rng.normal(size=(5000, 2)) @ rng.normal(size=(2, 4))  # rank 2 in 4 dimensions
+    _, whitening, _ = affine_normalization(torch.as_tensor(plane), whiten=True, floor=1e-6)
+    assert torch.linalg.matrix_norm(whitening, ord=2) < 1e4  # finite, not 1/0
+
+
+def test_normalized_mlp_maps_physical_units_through_whitened_coordinates():
+    torch.manual_seed(0)
+    network = NormalizedMLP(3, 2, 8, 2)
+    inputs = torch.randn(500, 3) @ torch.tensor([[1.0, 1.0, 1.0], [0.0, 0.1, 0.0], [0, 0, 0.01]])
+    outputs = torch.randn(500, 2) * torch.tensor([3.0, 0.5]) + 7.0
+    network.set_normalization(inputs, outputs)
+    x = inputs[:4]
+    expected = network.out_mean + network.normalized(
+        (x - network.in_mean) @ network.in_whitening
+    ) @ torch.diag(outputs.std(0))
+    torch.testing.assert_close(network(x), expected, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(
+        network.output_difference(torch.tensor([3.0, 0.5])),
+        torch.tensor([1.0, 1.0]) * torch.tensor([3.0, 0.5]) / outputs.std(0),
+    )
+
+
 def test_perturbed_forward_with_zero_deltas_matches_the_base_network():
     torch.manual_seed(0)
     network = NormalizedMLP(2, 5, 16, 3)
@@ -156,14 +196,15 @@ def test_unknown_head_lists_the_valid_ones():
 
 @pytest.fixture(scope="module")
 def harmonic(tmp_path_factory):
-    """autonomous_kkl and injection_kkl fitted on the harmonic oscillator (one shared Phase 1)."""
+    """autonomous_kkl and the pure injection_kkl on the harmonic oscillator (one Phase 1)."""
     context = context_for(
         HarmonicOscillator(),
         {**TINY, "encoder_steps": 1500, "decoder_steps": 800, "rate_candidates": [[1.0, 5.0]]},
         tmp_path_factory.mktemp("harmonic-cache"),
     )
     return {
-        name: estimators.get(name)().fit(context) for name in ("autonomous_kkl", "injection_kkl")
+        "autonomous_kkl": estimators.get("autonomous_kkl")().fit(context),
+        "injection_kkl": estimators.get("injection_kkl")(adapt=False).fit(context),
     }
 
 
@@ -225,7 +266,8 @@ def test_injection_kkl_converges_under_input_where_the_autonomous_observer_canno
 
 @pytest.fixture(scope="module")
 def fitted_family(tmp_path_factory):
-    """The four KKL plugins fitted with a tiny budget on duffing, sharing one cache."""
+    """The KKL plugins fitted with a tiny budget on duffing, sharing one cache
+    (``pure_injection_kkl``: injection_kkl without the decoder adaptation)."""
     cache = tmp_path_factory.mktemp("kkl-cache")
     context = context_for(systems.get("duffing")(), TINY, cache)
     names = (
@@ -235,23 +277,47 @@ def fitted_family(tmp_path_factory):
         "curriculum_kkl",
         "injection_kkl",
     )
-    return {name: estimators.get(name)().fit(context) for name in names}
+    family = {name: estimators.get(name)().fit(context) for name in names}
+    family["pure_injection_kkl"] = estimators.get("injection_kkl")(adapt=False).fit(context)
+    return family
 
 
-@pytest.mark.parametrize("name", ["static_hyperkkl", "dynamic_hyperkkl", "injection_kkl"])
-def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, name):
-    data = TrainingData(systems.get("duffing")(), DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=3).simulate(
-        regimes.get("zero")(), 3, stream="check", n_samples=300
+def duffing_data(regime, n_samples=300):
+    return TrainingData(systems.get("duffing")(), DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=3).simulate(
+        regimes.get(regime)(), 3, stream="check", n_samples=n_samples
     )
+
+
+@pytest.mark.parametrize("name", ["static_hyperkkl", "dynamic_hyperkkl", "pure_injection_kkl"])
+def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, name):
+    data = duffing_data("zero")
     reference = fitted_family["autonomous_kkl"].estimate(data.t, data.y, data.u)
     np.testing.assert_array_equal(fitted_family[name].estimate(data.t, data.y, data.u), reference)
-    forced = TrainingData(
-        systems.get("duffing")(), DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=3
-    ).simulate(regimes.get("square")(), 3, stream="check", n_samples=300)
+    forced = duffing_data("square")
     assert not np.array_equal(
         fitted_family[name].estimate(forced.t, forced.y, forced.u),
         fitted_family["autonomous_kkl"].estimate(forced.t, forced.y, forced.u),
     )
+
+
+def test_adapted_injection_kkl_trains_a_copy_of_the_decoder_and_logs_its_rounds(fitted_family):
+    adapted, pure = fitted_family["injection_kkl"], fitted_family["pure_injection_kkl"]
+    log = adapted.fit_report()["training_log"]
+    assert list(log) == ["injection_gain", "gain_selection", "round 1", "round 2"]
+    assert set(log["gain_selection"]) == {"0", "0.25", "0.5", "0.75", "1"}
+    assert log["injection_gain"] == adapted.gain_ and pure.gain_ == 1.0
+    assert "training_log" not in pure.fit_report()
+    assert any(
+        not torch.equal(a, b)
+        for a, b in zip(
+            adapted.model_.decoder.parameters(), pure.model_.decoder.parameters(), strict=True
+        )
+    )
+    torch.testing.assert_close(  # the shared Phase-1 encoder is untouched
+        dict(adapted.model_.encoder.state_dict()), dict(pure.model_.encoder.state_dict())
+    )
+    data = duffing_data("square")
+    assert np.isfinite(adapted.estimate(data.t, data.y, data.u)).all()
 
 
 def test_low_rank_heads_also_reproduce_the_autonomous_observer_at_zero_input(
@@ -293,6 +359,19 @@ def test_curriculum_walks_every_level_and_records_it(fitted_family):
         "multi-sine",
     ]
     assert all(5 <= level["epochs"] <= 6 for level in log.values())
+
+
+def test_auto_training_box_covers_forced_states_only_where_they_leave_the_unforced_range():
+    config = Phase1Config(train_trajectories=8, train_box="auto")
+    duffing = training_boxes(context_for(systems.get("duffing")(), TINY, None), config)
+    assert len(duffing) == 2 and duffing[1][1][0] > 5  # forced Duffing reaches |x1| > 5
+    lorenz = training_boxes(context_for(systems.get("lorenz")(), TINY, None), config)
+    assert len(lorenz) == 1  # the attractor already spans the forced states
+    with pytest.raises(ValueError, match="unknown train_box 'wide'; valid: auto, covering"):
+        training_boxes(
+            context_for(systems.get("lorenz")(), TINY, None),
+            dataclasses.replace(config, train_box="wide"),
+        )
 
 
 def test_checkpoints_are_reused_and_invalidated(tmp_path, monkeypatch):

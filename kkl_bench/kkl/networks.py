@@ -1,7 +1,13 @@
-"""Encoder and decoder networks: MLPs with per-component normalization.
+"""Encoder and decoder networks: MLPs between whitened coordinates.
 
-``NormalizedMLP`` computes ``out = mu_out + sigma_out * N((in - mu_in) / sigma_in)``
-where ``N`` is a SiLU MLP. Its forward also accepts additive perturbations
+``NormalizedMLP`` computes ``out = mu_out + C_out N(W_in (in - mu_in))`` where
+``N`` is a SiLU MLP, ``W_in`` whitens the inputs (ZCA: unit covariance) and
+``C_out`` colours ``N``'s outputs, either per component (``sigma_out``) or
+fully (the inverse whitening). Whitening matters: the latent states of a KKL
+observer are filtered copies of the same output, so their covariance is
+nearly singular (condition numbers of 1e10 on Rossler), and per-component
+scaling leaves the network an input whose informative directions are
+millions of times smaller than the others. Its forward also accepts additive perturbations
 of every layer's weights, one set per *window* (the dynamic HyperKKL's
 input-dependent parameters), applied to a ``(windows, points, in)`` batch
 with ``baddbmm``: weights are generated per window, never per sample.
@@ -28,6 +34,31 @@ def seeded(seed: int) -> Iterator[None]:
         yield
 
 
+def affine_normalization(
+    samples: torch.Tensor, whiten: bool, floor: float = 1e-6
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mean ``(n,)``, whitening ``W`` and colouring ``C = W^-1`` ``(n, n)`` of ``samples: (m, n)``.
+
+    ``(samples - mean) @ W`` has unit covariance (ZCA whitening, computed in
+    float64; covariance eigenvalues are floored at ``floor`` times the
+    largest, and at 1e-24) if ``whiten``, else unit variance per component. The floor keeps
+    directions that carry only measurement noise (a linear system's latent states span
+    ``n_x`` of their ``n_z`` dimensions) from being blown up to unit scale. Both matrices
+    are symmetric.
+    """
+    samples = samples.double()
+    mean = samples.mean(0)
+    if whiten:
+        variances, vectors = torch.linalg.eigh(torch.cov(samples.T).reshape(len(mean), -1))
+        scales = variances.clamp_min(floor * variances.max()).clamp_min(1e-24).sqrt()
+    else:
+        vectors = torch.eye(len(mean), dtype=torch.float64)
+        scales = samples.std(0).clamp_min(1e-6)
+    whitening = vectors @ torch.diag(1.0 / scales) @ vectors.T
+    coloring = vectors @ torch.diag(scales) @ vectors.T
+    return mean.float(), whitening.float(), coloring.float()
+
+
 class NormalizedMLP(nn.Module):
     """An MLP between normalized coordinates.
 
@@ -43,16 +74,39 @@ class NormalizedMLP(nn.Module):
         sizes = [n_in] + [hidden] * depth + [n_out]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in itertools.pairwise(sizes))
         self.register_buffer("in_mean", torch.zeros(n_in))
-        self.register_buffer("in_std", torch.ones(n_in))
+        self.register_buffer("in_whitening", torch.eye(n_in))
         self.register_buffer("out_mean", torch.zeros(n_out))
-        self.register_buffer("out_std", torch.ones(n_out))
+        self.register_buffer("out_coloring", torch.eye(n_out))
+        self.register_buffer("out_whitening", torch.eye(n_out))
 
-    def set_normalization(self, inputs: torch.Tensor, outputs: torch.Tensor) -> None:
-        """Fit the normalization to samples ``inputs: (n, n_in)`` and ``outputs: (n, n_out)``."""
-        self.in_mean.copy_(inputs.mean(0))
-        self.in_std.copy_(inputs.std(0).clamp_min(1e-6))
-        self.out_mean.copy_(outputs.mean(0))
-        self.out_std.copy_(outputs.std(0).clamp_min(1e-6))
+    def set_normalization(
+        self, inputs: torch.Tensor, outputs: torch.Tensor, whiten_outputs: bool = False
+    ) -> None:
+        """Fit the normalization to samples ``inputs: (n, n_in)`` and ``outputs: (n, n_out)``.
+
+        Inputs are always whitened; outputs are whitened if ``whiten_outputs``,
+        else scaled per component (so that output errors weigh each component
+        by its own spread, as the benchmark's RMSE does).
+        """
+        mean, whitening, _ = affine_normalization(inputs, whiten=True)
+        self.in_mean.copy_(mean)
+        self.in_whitening.copy_(whitening)
+        mean, whitening, coloring = affine_normalization(outputs, whiten=whiten_outputs)
+        self.out_mean.copy_(mean)
+        self.out_whitening.copy_(whitening)
+        self.out_coloring.copy_(coloring)
+
+    def input_difference(self, v: torch.Tensor) -> torch.Tensor:
+        """A difference (or tangent) of inputs ``(..., n_in)`` in normalized units."""
+        return v @ self.in_whitening
+
+    def output_difference(self, d: torch.Tensor) -> torch.Tensor:
+        """A difference (or tangent) of outputs ``(..., n_out)`` in normalized units."""
+        return d @ self.out_whitening
+
+    def normalized_output(self, out: torch.Tensor) -> torch.Tensor:
+        """Physical outputs ``(..., n_out)`` in the network's normalized coordinates."""
+        return self.output_difference(out - self.out_mean)
 
     def normalized(self, x_tilde: torch.Tensor, deltas: LayerDeltas | None = None) -> torch.Tensor:
         """The bare network ``N`` on normalized inputs.
@@ -75,9 +129,8 @@ class NormalizedMLP(nn.Module):
 
     def forward(self, x: torch.Tensor, deltas: LayerDeltas | None = None) -> torch.Tensor:
         """``x: (..., n_in)`` in physical units -> ``(..., n_out)`` in physical units."""
-        return self.out_mean + self.out_std * self.normalized(
-            (x - self.in_mean) / self.in_std, deltas
-        )
+        n = self.normalized(self.input_difference(x - self.in_mean), deltas)
+        return self.out_mean + n @ self.out_coloring
 
     def parameter_shapes(self) -> list[tuple[tuple[int, int], tuple[int]]]:
         """``[(weight shape, bias shape)]`` per layer, for hypernetwork heads."""

@@ -13,6 +13,8 @@ from collections.abc import Callable
 import torch
 from torch.func import jvp
 
+from kkl_bench.kkl.networks import NormalizedMLP
+
 
 def directional_derivative(
     encoder: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, v: torch.Tensor
@@ -32,3 +34,12 @@ def pde_residual(
     """``dT/dx(x) v - A T(x) - B h(x)``: ``x, v: (..., n_x)``, ``h_x: (..., n_y)`` -> ``(..., n_z)``."""
     t_x, dt_v = directional_derivative(encoder, x, v)
     return dt_v - t_x @ a.T - h_x @ b.T
+
+
+def normalized_field_rms(encoder: NormalizedMLP, vector_field: torch.Tensor) -> torch.Tensor:
+    """RMS norm of ``vector_field: (n, n_x)`` in the encoder's normalized input units.
+
+    Dividing a residual in normalized latent units by it makes the PDE term
+    comparable to the data term whatever the system's speed.
+    """
+    return encoder.input_difference(vector_field).pow(2).sum(-1).mean().sqrt().clamp_min(1e-6)

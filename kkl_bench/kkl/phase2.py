@@ -78,9 +78,9 @@ class ForcedSamples:
 
 
 def phase2_description(
-    model: AutonomousModel, kind: str, config: Phase2Config, params: dict[str, Any]
+    model: AutonomousModel, kind: str, config: Any, params: dict[str, Any]
 ) -> dict[str, Any]:
-    """The cache description of a Phase-2 model built on ``model``."""
+    """The cache description of a Phase-2 model (``config``: its budget dataclass) on ``model``."""
     return {"kind": kind, "phase1": model.description, "config": asdict(config), "params": params}
 
 
