@@ -47,11 +47,11 @@ from kkl_bench.registry import estimators, regimes
 class AdaptationConfig:
     """Budget of the adaptation (read with :func:`kkl_bench.kkl.config.from_budget`)."""
 
-    phase2_trajectories: int = 32
+    adaptation_trajectories: int = 64
     """Training trajectories of each kind (unforced, forced); half as many validate the gain."""
-    adaptation_steps: int = 2000
+    adaptation_steps: int = 16000
     """Adam steps over all rounds."""
-    adaptation_rounds: int = 2
+    adaptation_rounds: int = 4
     injection_gains: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
     batch: int = 1024
 
@@ -91,7 +91,7 @@ def select_gain(
     x, y, u = _simulate(
         context,
         {"forced": FORCED_TRAINING},
-        max(1, config.phase2_trajectories // 2),
+        max(1, config.adaptation_trajectories // 2),
         "kkl/adapt/validation",
     )
     start = steady_state_start(x.shape[1])
@@ -110,7 +110,7 @@ def adapt(context: FitContext, model: AutonomousModel, config: AdaptationConfig)
     injected observer's own latent states.
 
     Each round runs the observer (with the current decoder in the injection)
-    on ``phase2_trajectories`` unforced and as many forced training
+    on ``adaptation_trajectories`` unforced and as many forced training
     trajectories (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING`), then trains
     the decoder on the pairs ``(z_k, x_k)`` of the scored window. Returns the
     gain, its selection scores and the final loss of each round.
@@ -121,7 +121,7 @@ def adapt(context: FitContext, model: AutonomousModel, config: AdaptationConfig)
     x, y, u = _simulate(
         context,
         {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING},
-        config.phase2_trajectories,
+        config.adaptation_trajectories,
         "kkl/adapt",
     )
     start = steady_state_start(x.shape[1])
