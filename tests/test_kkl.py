@@ -1,18 +1,17 @@
 """The KKL toolkit and plugins against known answers."""
 
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-from kkl_bench.estimators.injection_kkl import exact_injection
+from kkl_bench.estimators.injection_kkl import AdaptationConfig, exact_injection, select_gain
 from scipy.integrate import solve_ivp
 from scipy.linalg import solve_sylvester
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl import autonomous, optimize
-from kkl_bench.kkl.autonomous import Phase1Config, fit_autonomous, training_boxes
+from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomous, training_boxes
 from kkl_bench.kkl.hyper import ChunkedHead, LowRankHead, make_head
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.kkl.networks import NormalizedMLP, affine_normalization
@@ -233,8 +232,8 @@ def test_autonomous_kkl_learns_the_sylvester_map_of_a_linear_system(harmonic):
     assert error[:, 500:].mean() < 0.05
 
 
-def test_injection_of_an_exact_linear_map_is_exactly_m_g():
-    """With ``T(x) = M x``, the injection ``dT/dx(T*(z)) g u`` is ``M g u`` whatever ``z``."""
+def exact_linear_model() -> AutonomousModel:
+    """The harmonic oscillator's exact KKL maps: ``T(x) = M x`` (Sylvester), ``T*(z) = M^+ z``."""
     rates = spread_eigenvalues(5, 1.0, 5.0)
     a, b = latent_matrices(rates)
     exact = solve_sylvester(a, -HarmonicOscillator.F, -b @ np.array([[1.0, 0.0]]))
@@ -243,7 +242,13 @@ def test_injection_of_an_exact_linear_map_is_exactly_m_g():
     with torch.no_grad():
         encoder.weight.copy_(torch.as_tensor(exact))
         decoder.weight.copy_(torch.as_tensor(np.linalg.pinv(exact)))
-    model = SimpleNamespace(encoder=encoder, decoder=decoder)
+    return AutonomousModel(rates, LatentObserver(a, b, DT), encoder, decoder)
+
+
+def test_injection_of_an_exact_linear_map_is_exactly_m_g():
+    """With ``T(x) = M x``, the injection ``dT/dx(T*(z)) g u`` is ``M g u`` whatever ``z``."""
+    model = exact_linear_model()
+    exact = model.encoder.weight.detach().double().numpy()
     u = np.array([[[0.5]], [[-2.0]]])
     phi = exact_injection(model, HarmonicOscillator.g, u)(
         0, np.random.default_rng(0).normal(size=(2, 5))
@@ -251,6 +256,14 @@ def test_injection_of_an_exact_linear_map_is_exactly_m_g():
     np.testing.assert_allclose(
         phi, u[:, 0] * (exact @ HarmonicOscillator.g).astype(np.float32), rtol=1e-6
     )
+
+
+def test_gain_selection_keeps_the_full_injection_of_exact_maps(tmp_path):
+    context = context_for(HarmonicOscillator(), TINY, tmp_path)
+    gain, scores = select_gain(
+        context, exact_linear_model(), AdaptationConfig(adaptation_trajectories=8)
+    )
+    assert gain == 1.0 and scores["1"] < scores["0"] / 10
 
 
 def test_injection_kkl_converges_under_input_where_the_autonomous_observer_cannot(harmonic):

@@ -119,11 +119,11 @@ def training_boxes(context: FitContext, config: Phase1Config) -> list[Box]:
 
     The covering box is the per-state range of forced training trajectories
     (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING` inputs, a training stream),
-    joined with the x0 box: forced Duffing reaches ``|x1|`` of 8-10, far
+    joined with the x0 box: forced Duffing reaches ``|x1|`` of about 7, far
     outside ``[-1, 1]``, and maps trained on the x0 box alone are wrong
-    there. On the chaotic systems the attractor already spans the forced
-    states, and starting trajectories all over it only dilutes the data
-    (``"auto"`` then keeps the x0 box).
+    there. Where unforced orbits already span the forced states (Van der
+    Pol's limit cycle, the chaotic attractors), starting trajectories all
+    over that range only dilutes the data, and ``"auto"`` keeps the x0 box.
     """
     if config.train_box not in TRAIN_BOXES:
         raise ValueError(f"unknown train_box {config.train_box!r}; valid: {', '.join(TRAIN_BOXES)}")

@@ -5,12 +5,14 @@
 ``C_out`` colours ``N``'s outputs, either per component (``sigma_out``) or
 fully (the inverse whitening). Whitening matters: the latent states of a KKL
 observer are filtered copies of the same output, so their covariance is
-nearly singular (condition numbers of 1e10 on Rossler), and per-component
-scaling leaves the network an input whose informative directions are
-millions of times smaller than the others. Its forward also accepts additive perturbations
-of every layer's weights, one set per *window* (the dynamic HyperKKL's
-input-dependent parameters), applied to a ``(windows, points, in)`` batch
-with ``baddbmm``: weights are generated per window, never per sample.
+nearly singular, and per-component scaling leaves the network an input
+whose informative directions are orders of magnitude smaller than the
+others.
+
+The forward also accepts additive perturbations of every layer's weights,
+one set per *window* (the dynamic HyperKKL's input-dependent parameters),
+applied to a ``(windows, points, in)`` batch with ``baddbmm``: weights are
+generated per window, never per sample.
 """
 
 from __future__ import annotations
