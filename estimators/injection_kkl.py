@@ -14,7 +14,8 @@ follow, both on training streams:
 
 1. the injection is scaled by a gain in [0, 1], the one of
    ``injection_gains`` with the lowest RMSE on forced validation
-   trajectories: an encoder whose Jacobian is poor (Lorenz) does less harm;
+   trajectories (:func:`kkl_bench.kkl.gain.select_gain`): an encoder whose
+   Jacobian is poor (Lorenz) then does less harm;
 2. a copy of ``T*`` is fine-tuned on the latent states this observer itself
    produces along forced and unforced training trajectories
    (``adaptation_rounds`` rounds, since those states depend on the decoder
@@ -36,6 +37,7 @@ from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.estimator import KKLEstimator
+from kkl_bench.kkl.gain import GAINS, select_gain, simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.pde import directional_derivative
 from kkl_bench.kkl.phase2 import load_or_train, phase2_description
@@ -52,7 +54,7 @@ class AdaptationConfig:
     adaptation_steps: int = 16000
     """Adam steps over all rounds."""
     adaptation_rounds: int = 4
-    injection_gains: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
+    injection_gains: tuple[float, ...] = GAINS
     batch: int = 1024
 
 
@@ -72,39 +74,6 @@ def exact_injection(model: AutonomousModel, g: np.ndarray, u: np.ndarray, gain: 
     return injection
 
 
-def _simulate(
-    context: FitContext, families: dict[str, object], n: int, stream: str
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``x, y, u`` of ``n`` training trajectories per input family, concatenated."""
-    parts = [
-        context.training.simulate(inputs, n, stream=f"{stream}/{label}")
-        for label, inputs in families.items()
-    ]
-    return tuple(np.concatenate([getattr(part, name) for part in parts]) for name in "xyu")
-
-
-def select_gain(
-    context: FitContext, model: AutonomousModel, config: AdaptationConfig
-) -> tuple[float, dict[str, float]]:
-    """The gain of ``config.injection_gains`` with the lowest RMSE on forced validation
-    trajectories (scored window), and every gain's RMSE."""
-    x, y, u = _simulate(
-        context,
-        {"forced": FORCED_TRAINING},
-        max(1, config.adaptation_trajectories // 2),
-        "kkl/adapt/validation",
-    )
-    start = steady_state_start(x.shape[1])
-    scores = {}
-    for gain in config.injection_gains:
-        x_hat = model.decode(
-            model.observer.run(y, exact_injection(model, context.system.g, u, gain))
-        )
-        scores[f"{gain:g}"] = float(np.sqrt(np.mean((x_hat[:, start:] - x[:, start:]) ** 2)))
-    best = min(config.injection_gains, key=lambda gain: scores[f"{gain:g}"])
-    return best, scores
-
-
 def adapt(context: FitContext, model: AutonomousModel, config: AdaptationConfig) -> dict:
     """Choose the injection gain, then fine-tune ``model.decoder`` in place on the
     injected observer's own latent states.
@@ -116,9 +85,16 @@ def adapt(context: FitContext, model: AutonomousModel, config: AdaptationConfig)
     gain, its selection scores and the final loss of each round.
     """
     system = context.system
-    gain, scores = select_gain(context, model, config)
+    gain, scores = select_gain(
+        context,
+        model,
+        lambda u, gain: exact_injection(model, system.g, u, gain),
+        max(1, config.adaptation_trajectories // 2),
+        "kkl/adapt/validation",
+        config.injection_gains,
+    )
     log = {"injection_gain": gain, "gain_selection": scores}
-    x, y, u = _simulate(
+    x, y, u = simulate_families(
         context,
         {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING},
         config.adaptation_trajectories,

@@ -6,6 +6,13 @@ The observer is ``dz/dt = A z + B y + phi(z, c_t)`` with
 control-affine systems the ideal injection is ``dT/dx(x) g u`` (one encoder
 JVP along ``g``), which is ``psi``'s training target at ``z = T(x)`` on forced
 training states. Between samples the injection is held (exponential Euler).
+
+With ``guard`` (the default; not in the paper) the learned injection is
+scaled by a gain in [0, 1] chosen on forced validation trajectories of a
+training stream (:func:`kkl_bench.kkl.gain.select_gain`): ``psi`` learns the
+encoder's Jacobian, and where that Jacobian is poor (Van der Pol, Lorenz)
+the full injection is worse than none. ``guard=False`` is the paper's
+observer (gain 1).
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ import torch
 from torch import nn
 
 from kkl_bench.kkl.estimator import KKLEstimator
+from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
 from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2, to_numpy
@@ -51,13 +59,17 @@ class StaticHyperKKL(KKLEstimator):
     ----------
     pde_weight: weight of the PDE residual in Phase 1 (shared with ``autonomous_kkl``).
     injection_hidden: width of ``psi``'s two hidden layers.
+    guard: scale the injection by a gain chosen on validation data (see the module).
     """
 
     name = "static_hyperkkl"
 
-    def __init__(self, pde_weight: float = 1.0, injection_hidden: int = 64) -> None:
+    def __init__(
+        self, pde_weight: float = 1.0, injection_hidden: int = 64, guard: bool = True
+    ) -> None:
         self.pde_weight = pde_weight
         self.injection_hidden = injection_hidden
+        self.guard = guard
 
     def fit(self, context):
         self.model_, self.config_, self.injection_, self.log_ = fit_phase2(
@@ -70,6 +82,16 @@ class StaticHyperKKL(KKLEstimator):
             ),
             self._train,
         )
+        self.gain_ = 1.0
+        if self.guard:
+            self.gain_, scores = select_gain(
+                context,
+                self.model_,
+                self._injection,
+                max(1, self.config_.phase2_trajectories // 2),
+                "kkl/static/validation",
+            )
+            self.log_ = {**self.log_, "injection_gain": self.gain_, "gain_selection": scores}
         return super().fit(context)
 
     @staticmethod
@@ -107,8 +129,8 @@ class StaticHyperKKL(KKLEstimator):
             parts = [self.injection_.window_encoder(part) for part in flat.split(CONTEXT_CHUNK)]
         return torch.cat(parts).reshape(*windows.shape[:2], -1)
 
-    def estimate(self, t, y, u):
-        self.check_fitted()
+    def _injection(self, u: np.ndarray, gain: float):
+        """``injection(k, z_k) = gain u_k psi(z_k, c_k)`` (latent units) for ``u: (batch, steps, 1)``."""
         encoder = self.model_.encoder
         contexts = self.contexts(u)
         coloring = to_numpy(encoder.out_coloring)  # psi is in normalized latent units
@@ -116,6 +138,11 @@ class StaticHyperKKL(KKLEstimator):
         def injection(k, z):
             z_tilde = encoder.normalized_output(torch.as_tensor(z, dtype=torch.float32))
             with torch.no_grad():
-                return u[:, k] * to_numpy(self.injection_(z_tilde, contexts[:, k])) @ coloring
+                psi = to_numpy(self.injection_(z_tilde, contexts[:, k]))
+            return gain * u[:, k] * psi @ coloring
 
-        return self.model_.decode(self.model_.observer.run(y, injection))
+        return injection
+
+    def estimate(self, t, y, u):
+        self.check_fitted()
+        return self.model_.decode(self.model_.observer.run(y, self._injection(u, self.gain_)))

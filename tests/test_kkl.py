@@ -5,13 +5,14 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from kkl_bench.estimators.injection_kkl import AdaptationConfig, exact_injection, select_gain
+from kkl_bench.estimators.injection_kkl import exact_injection
 from scipy.integrate import solve_ivp
 from scipy.linalg import solve_sylvester
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl import autonomous, optimize
 from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomous, training_boxes
+from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.hyper import ChunkedHead, LowRankHead, make_head
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.kkl.networks import NormalizedMLP, affine_normalization
@@ -260,8 +261,13 @@ def test_injection_of_an_exact_linear_map_is_exactly_m_g():
 
 def test_gain_selection_keeps_the_full_injection_of_exact_maps(tmp_path):
     context = context_for(HarmonicOscillator(), TINY, tmp_path)
+    model = exact_linear_model()
     gain, scores = select_gain(
-        context, exact_linear_model(), AdaptationConfig(adaptation_trajectories=8)
+        context,
+        model,
+        lambda u, gain: exact_injection(model, HarmonicOscillator.g, u, gain),
+        4,
+        "check",
     )
     assert gain == 1.0 and scores["1"] < scores["0"] / 10
 
@@ -281,7 +287,8 @@ def test_injection_kkl_converges_under_input_where_the_autonomous_observer_canno
 @pytest.fixture(scope="module")
 def fitted_family(tmp_path_factory):
     """The KKL plugins fitted with a tiny budget on duffing, sharing one cache
-    (``pure_injection_kkl``: injection_kkl without the decoder adaptation)."""
+    (``pure_injection_kkl``: injection_kkl without adaptation; ``unguarded_static_hyperkkl``:
+    static_hyperkkl with gain 1, as in the paper)."""
     cache = tmp_path_factory.mktemp("kkl-cache")
     context = context_for(systems.get("duffing")(), TINY, cache)
     names = (
@@ -293,6 +300,9 @@ def fitted_family(tmp_path_factory):
     )
     family = {name: estimators.get(name)().fit(context) for name in names}
     family["pure_injection_kkl"] = estimators.get("injection_kkl")(adapt=False).fit(context)
+    family["unguarded_static_hyperkkl"] = estimators.get("static_hyperkkl")(guard=False).fit(
+        context
+    )
     return family
 
 
@@ -302,7 +312,9 @@ def duffing_data(regime, n_samples=300):
     )
 
 
-@pytest.mark.parametrize("name", ["static_hyperkkl", "dynamic_hyperkkl", "pure_injection_kkl"])
+@pytest.mark.parametrize(
+    "name", ["unguarded_static_hyperkkl", "dynamic_hyperkkl", "pure_injection_kkl"]
+)
 def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, name):
     data = duffing_data("zero")
     reference = fitted_family["autonomous_kkl"].estimate(data.t, data.y, data.u)
@@ -311,6 +323,21 @@ def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, na
     assert not np.array_equal(
         fitted_family[name].estimate(forced.t, forced.y, forced.u),
         fitted_family["autonomous_kkl"].estimate(forced.t, forced.y, forced.u),
+    )
+
+
+def test_guarded_static_hyperkkl_uses_the_gain_with_the_best_validation_score(fitted_family):
+    guarded, unguarded = (
+        fitted_family["static_hyperkkl"],
+        fitted_family["unguarded_static_hyperkkl"],
+    )
+    scores = guarded.log_["gain_selection"]
+    assert set(scores) == {"0", "0.25", "0.5", "0.75", "1"} and unguarded.gain_ == 1.0
+    assert scores[f"{guarded.gain_:g}"] == min(scores.values())
+    data = duffing_data("zero")  # any gain keeps the zero-input observer
+    np.testing.assert_array_equal(
+        guarded.estimate(data.t, data.y, data.u),
+        fitted_family["autonomous_kkl"].estimate(data.t, data.y, data.u),
     )
 
 
