@@ -272,6 +272,20 @@ def test_gain_selection_keeps_the_full_injection_of_exact_maps(tmp_path):
     assert gain == 1.0 and scores["1"] < scores["0"] / 10
 
 
+def test_gain_selection_ranks_a_diverging_gain_last(tmp_path):
+    context = context_for(HarmonicOscillator(), TINY, tmp_path)
+    model = exact_linear_model()
+
+    def injection_for(u, gain):
+        exact = exact_injection(model, HarmonicOscillator.g, u, 1.0)
+        if gain == 1.0:
+            return lambda k, z: exact(k, z) + (np.nan if k == 500 else 0.0)
+        return lambda k, z: gain * exact(k, z)
+
+    gain, scores = select_gain(context, model, injection_for, 4, "check", gains=(0.0, 0.5, 1.0))
+    assert scores["1"] == float("inf") and gain == 0.5
+
+
 def test_injection_kkl_converges_under_input_where_the_autonomous_observer_cannot(harmonic):
     data = harmonic_data("square")
     late = slice(500, None)

@@ -46,7 +46,8 @@ def select_gain(
     gains: tuple[float, ...] = GAINS,
 ) -> tuple[float, dict[str, float]]:
     """The gain with the lowest RMSE of ``model``'s observer over the scored window of
-    ``n`` forced validation trajectories, and every gain's RMSE.
+    ``n`` forced validation trajectories, and every gain's RMSE (``inf`` if the
+    observer diverged with that gain).
 
     ``injection_for(u, gain)`` returns the injection for :meth:`LatentObserver.run`
     given ``u: (batch, steps, 1)``.
@@ -55,6 +56,8 @@ def select_gain(
     start = steady_state_start(x.shape[1])
     scores = {}
     for gain in gains:
-        x_hat = model.decode(model.observer.run(y, injection_for(u, gain)))
-        scores[f"{gain:g}"] = float(np.sqrt(np.mean((x_hat[:, start:] - x[:, start:]) ** 2)))
+        with np.errstate(over="ignore", invalid="ignore"):
+            x_hat = model.decode(model.observer.run(y, injection_for(u, gain)))
+            rmse = float(np.sqrt(np.mean((x_hat[:, start:] - x[:, start:]) ** 2)))
+        scores[f"{gain:g}"] = rmse if np.isfinite(rmse) else float("inf")  # diverged
     return min(gains, key=lambda gain: scores[f"{gain:g}"]), scores
