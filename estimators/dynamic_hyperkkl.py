@@ -144,6 +144,7 @@ class DynamicHyperKKL(KKLEstimator):
             loss,
             hyper.parameters(),
             config.phase2_steps,
+            n_windows * config.collocation_points,
             description=f"{system.name}: hypernetwork",
         )
         return {"final_loss": float(np.mean(losses[-50:]))}

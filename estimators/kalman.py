@@ -28,7 +28,10 @@ class KalmanBaseline(Estimator):
     Subclasses build the filter (:meth:`make_filter`) and take one
     predict-update step (:meth:`step`). A filter that hits a singular matrix
     yields NaN from there on, so the trajectory is reported as diverged.
+    Nothing is trained, so the seed changes nothing: it is run once.
     """
+
+    uses_seed = False
 
     @abstractmethod
     def make_filter(self, context: FitContext, dt: float):

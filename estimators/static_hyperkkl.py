@@ -7,12 +7,14 @@ control-affine systems the ideal injection is ``dT/dx(x) g u`` (one encoder
 JVP along ``g``), which is ``psi``'s training target at ``z = T(x)`` on forced
 training states. Between samples the injection is held (exponential Euler).
 
-With ``guard`` (the default; not in the paper) the learned injection is
-scaled by a gain in [0, 1] chosen on forced validation trajectories of a
-training stream (:func:`kkl_bench.kkl.gain.select_gain`): ``psi`` learns the
-encoder's Jacobian, and where that Jacobian is poor (Van der Pol, Lorenz)
-the full injection is worse than none. ``guard=False`` is the paper's
-observer (gain 1).
+The default is the paper's observer (gain 1). With ``guard=True`` (our
+variant, not in the paper; published as ``static_hyperkkl[guard=True]``)
+the learned injection is scaled by a gain in [0, 1] chosen on forced
+validation trajectories of a training stream
+(:func:`kkl_bench.kkl.gain.select_gain`): ``psi`` learns the encoder's
+Jacobian, and where that Jacobian is poor (Van der Pol, Lorenz) the full
+injection is worse than none. Both share one trained ``psi`` (the guard
+acts after training).
 """
 
 from __future__ import annotations
@@ -65,7 +67,7 @@ class StaticHyperKKL(KKLEstimator):
     name = "static_hyperkkl"
 
     def __init__(
-        self, pde_weight: float = 1.0, injection_hidden: int = 64, guard: bool = True
+        self, pde_weight: float = 1.0, injection_hidden: int = 64, guard: bool = False
     ) -> None:
         self.pde_weight = pde_weight
         self.injection_hidden = injection_hidden
@@ -75,7 +77,7 @@ class StaticHyperKKL(KKLEstimator):
         self.model_, self.config_, self.injection_, self.log_ = fit_phase2(
             context,
             "kkl-static",
-            self.get_params(),
+            {"pde_weight": self.pde_weight, "injection_hidden": self.injection_hidden},
             self.pde_weight,
             lambda model, config: Injection(
                 context.system.n_z, config.lstm_hidden, self.injection_hidden
@@ -117,6 +119,7 @@ class StaticHyperKKL(KKLEstimator):
             loss,
             injection.parameters(),
             config.phase2_steps,
+            config.phase2_batch,
             description=f"{context.system.name}: injection psi",
         )
         return {"final_loss": float(np.mean(losses[-50:]))}

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from kkl_bench import harness, leaderboard
+from kkl_bench import harness, leaderboard, variants
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.executors import EXECUTORS
 from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
@@ -25,6 +25,7 @@ examples:
   kkl-bench list
   kkl-bench run --estimator ukf --profile quick
   kkl-bench run --estimator ekf --system duffing vdp --regime sinusoid square
+  kkl-bench run --estimator dynamic_hyperkkl 'static_hyperkkl[guard=True]' --seed 0 1 2
   kkl-bench leaderboard --with-paper
   kkl-bench leaderboard --format latex > table.tex
   kkl-bench run --estimator all --profile standard --jobs 2
@@ -35,9 +36,14 @@ examples:
 
 
 def _names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:
-    """``requested`` validated against ``registry``; ``None`` or ``all`` means every name."""
+    """``requested`` validated against ``registry``; ``None`` or ``all`` means every name.
+
+    Estimators may be variants (``static_hyperkkl[guard=True]``), returned canonical.
+    """
     if not requested or list(requested) == ["all"]:
         return tuple(registry.names())
+    if registry is estimators:
+        return tuple(dict.fromkeys(variants.canonical(name) for name in requested))
     for name in requested:
         registry.get(name)  # raises an error that lists the valid names
     return tuple(dict.fromkeys(requested))
@@ -93,7 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
         "and write one result file per cell. Cells already on disk are skipped (use --force).",
     )
     run.add_argument(
-        "--estimator", nargs="+", required=True, metavar="NAME", help="estimator names, or 'all'"
+        "--estimator",
+        nargs="+",
+        required=True,
+        metavar="NAME",
+        help="estimator names, variants such as 'static_hyperkkl[guard=True]', or 'all'",
     )
     run.add_argument("--system", nargs="+", metavar="NAME", help="systems to run (default: all)")
     run.add_argument(
@@ -101,7 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--profile", default="quick", help="profile: quick (default) or standard")
     run.add_argument(
-        "--seed", type=_seed, default=0, help="seed of the estimators' training streams (default 0)"
+        "--seed",
+        type=_seed,
+        nargs="+",
+        default=[0],
+        metavar="SEED",
+        help="training seeds, one fit per seed (default 0); estimators that ignore "
+        "the seed (the filters) run with the first only",
     )
     _add_results_argument(run)
     _add_cache_argument(run)
@@ -147,7 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_cache_argument(cache)
 
     check = commands.add_parser("check", help="run the conformance checks on an estimator")
-    check.add_argument("estimator", metavar="NAME")
+    check.add_argument("estimator", metavar="NAME", help="estimator name or variant")
     check.add_argument("--system", default="duffing", help="system to check on (default duffing)")
     return parser
 
@@ -168,12 +184,14 @@ def _run(args: argparse.Namespace) -> int:
         systems=_names(systems, args.system),
         regimes=_names(regimes, args.regime),
         profile=get_profile(args.profile),
-        seed=args.seed,
+        seeds=tuple(args.seed),
         results_dir=args.results,
         cache_dir=args.cache or default_cache_dir(),
         force=args.force,
     )
-    total = len(spec.estimators) * len(spec.systems) * len(spec.regimes)
+    total = sum(len(spec.seeds_for(name)) for name in spec.estimators) * (
+        len(spec.systems) * len(spec.regimes)
+    )
     with tqdm(
         total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0
     ) as bar:

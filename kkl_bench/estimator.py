@@ -80,6 +80,9 @@ class Estimator(ABC):
     """
 
     name: ClassVar[str] = ""
+    uses_seed: ClassVar[bool] = True
+    """Whether the fitted estimator depends on the training seed. One that does not
+    (a filter given the model) is run with one seed only, however many are asked."""
 
     def fit(self, context: FitContext) -> Self:
         """Prepare for ``context.system``; the default only records the context."""

@@ -1,9 +1,11 @@
 """Runs estimators over the benchmark grid and records every cell as it finishes.
 
-For each (estimator, system) the harness builds the estimator, fits it once
-with a :class:`~kkl_bench.estimator.FitContext`, then scores it on the
+For each (estimator, system, seed) the harness builds the estimator, fits it
+once with a :class:`~kkl_bench.estimator.FitContext`, then scores it on the
 requested regimes' test sets. Each cell is written atomically the moment it
-is scored; a cell already on disk is skipped unless ``force`` is set. An
+is scored, with the truth and the estimate of its first test trajectory
+beside it; a cell already on disk is skipped unless ``force`` is set.
+Estimators that do not depend on the seed run with the first seed only. An
 estimator that raises, or returns the wrong shape, produces an ``error``
 cell and the run goes on.
 """
@@ -18,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kkl_bench import variants
 from kkl_bench.cache import default_cache_dir
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import execute
@@ -26,6 +29,7 @@ from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, smape
 from kkl_bench.registry import estimators, regimes, systems
 from kkl_bench.results import (
     CellResult,
+    KeptEstimate,
     cell_path,
     check_writable,
     provenance,
@@ -41,13 +45,18 @@ WARM_UP_STEPS = 20
 
 @dataclass(frozen=True)
 class RunSpec:
-    """What to run: the grid, the profile, the seed and where results go."""
+    """What to run: the grid, the profile, the training seeds and where results go.
+
+    ``estimators`` are registered names or variants of them
+    (``static_hyperkkl[guard=True]``, see :mod:`kkl_bench.variants`); they are
+    stored in their canonical spelling.
+    """
 
     estimators: tuple[str, ...]
     systems: tuple[str, ...]
     regimes: tuple[str, ...]
     profile: Profile
-    seed: int = 0
+    seeds: tuple[int, ...] = (0,)
     results_dir: Path = Path("results")
     cache_dir: Path = field(default_factory=default_cache_dir)
     force: bool = False
@@ -60,9 +69,23 @@ class RunSpec:
         ):
             if not names:
                 raise ValueError(f"no {registry.kind}s selected")
+            if registry is estimators:
+                continue
             for name in names:
                 if name not in registry:
                     registry.get(name)  # raises the error listing the valid names
+        if not self.seeds:
+            raise ValueError("no seeds selected")
+        if any(seed < 0 for seed in self.seeds):
+            raise ValueError(f"seeds must be non-negative integers, got {list(self.seeds)}")
+        canonical = tuple(dict.fromkeys(variants.canonical(name) for name in self.estimators))
+        object.__setattr__(self, "estimators", canonical)
+        object.__setattr__(self, "seeds", tuple(dict.fromkeys(self.seeds)))
+
+    def seeds_for(self, estimator: str) -> tuple[int, ...]:
+        """The seeds ``estimator`` runs with: all, or the first if it ignores the seed."""
+        uses_seed = estimators.get(variants.base_name(estimator)).uses_seed
+        return self.seeds if uses_seed else self.seeds[:1]
 
 
 @dataclass
@@ -78,8 +101,8 @@ class RunSummary:
         return not self.failed
 
 
-def make_fit_context(spec: RunSpec, estimator: str, system: str) -> FitContext:
-    """The context an estimator is fitted with for ``system`` under ``spec``."""
+def make_fit_context(spec: RunSpec, estimator: str, system: str, seed: int) -> FitContext:
+    """The context ``estimator`` (a name or variant) is fitted with for ``system`` and ``seed``."""
     model = systems.get(system)()
     return FitContext(
         system=model,
@@ -87,19 +110,20 @@ def make_fit_context(spec: RunSpec, estimator: str, system: str) -> FitContext:
         n_samples=N_SAMPLES,
         sigma_w=SIGMA_W,
         sigma_v=SIGMA_V,
-        training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, SIGMA_V, spec.seed),
-        seed=spec.seed,
+        training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed),
+        seed=seed,
         profile=spec.profile.name,
-        budget=spec.profile.budget_for(estimator),
+        budget=spec.profile.budget_for(variants.base_name(estimator)),
         cache_dir=Path(spec.cache_dir),
     )
 
 
-def score(estimator: Estimator, test_set: TestSet) -> dict:
+def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
     """Run ``estimator`` on ``test_set`` and compute the protocol's metrics.
 
-    Returns the metric and timing fields of a :class:`CellResult`. Raises
-    ``ValueError`` if the estimate has the wrong shape.
+    Returns the metric and timing fields of a :class:`CellResult` and the
+    truth and estimate of the first test trajectory. Raises ``ValueError`` if
+    the estimate has the wrong shape.
     """
     data = test_set.data
     estimator.estimate(
@@ -112,16 +136,17 @@ def score(estimator: Estimator, test_set: TestSet) -> dict:
         raise ValueError(
             f"estimate returned shape {x_hat.shape}; expected {data.x.shape} (batch, steps, n_x)"
         )
-    return {
+    metrics = {
         "rmse": rmse(data.x, x_hat).tolist(),
         "smape": smape(data.x, x_hat).tolist(),
         "nrmse": nrmse(data.x, x_hat, test_set.state_scale).tolist(),
         "per_state_rmse": per_state_rmse(data.x, x_hat).tolist(),
         "estimate_us_per_step": 1e6 * elapsed / (x_hat.shape[0] * x_hat.shape[1]),
     }
+    return metrics, KeptEstimate(t=data.t, x=data.x[0], x_hat=x_hat[0])
 
 
-def _cell(spec: RunSpec, name: str, params: dict, task: Task, **fields) -> CellResult:
+def _cell(spec: RunSpec, name: str, params: dict, task: Task, seed: int, **fields) -> CellResult:
     """The record of ``task``'s cell for estimator ``name`` (hyperparameters ``params``)."""
     test_set = make_test_set(task, spec.profile.n_test)
     return CellResult(
@@ -130,7 +155,7 @@ def _cell(spec: RunSpec, name: str, params: dict, task: Task, **fields) -> CellR
         regime=task.regime,
         task=task.id,
         profile=spec.profile.name,
-        seed=spec.seed,
+        seed=seed,
         n_test=spec.profile.n_test,
         estimator_params=params,
         protocol=PROTOCOL_ID,
@@ -146,17 +171,18 @@ def _error_text(error: BaseException) -> str:
 
 
 def run_system(
-    spec: RunSpec, estimator_name: str, system: str, regime_names: Iterable[str]
+    spec: RunSpec, estimator_name: str, system: str, regime_names: Iterable[str], seed: int
 ) -> Iterator[CellResult]:
-    """Fit ``estimator_name`` on ``system`` once and score it on each regime, yielding cells.
+    """Fit ``estimator_name`` on ``system`` with ``seed`` once and score it on each regime,
+    yielding cells.
 
     Each cell is written to ``spec.results_dir`` before it is yielded.
     """
-    estimator = estimators.get(estimator_name)()
+    estimator = variants.build(estimator_name)
     tasks = [Task(system, regime) for regime in regime_names]
     start = time.perf_counter()
     try:
-        estimator.fit(make_fit_context(spec, estimator_name, system))
+        estimator.fit(make_fit_context(spec, estimator_name, system, seed))
     except Exception as error:
         for task in tasks:
             cell = _cell(
@@ -164,6 +190,7 @@ def run_system(
                 estimator_name,
                 estimator.get_params(),
                 task,
+                seed,
                 status="error",
                 error=f"fit failed: {_error_text(error)}",
             )
@@ -173,8 +200,10 @@ def run_system(
     fit_time = time.perf_counter() - start
     report = estimator.fit_report()
     for task in tasks:
+        kept = None
         try:
-            fields = {"status": "ok", **score(estimator, make_test_set(task, spec.profile.n_test))}
+            metrics, kept = score(estimator, make_test_set(task, spec.profile.n_test))
+            fields = {"status": "ok", **metrics}
         except Exception as error:
             fields = {"status": "error", "error": f"estimate failed: {_error_text(error)}"}
         cell = _cell(
@@ -182,30 +211,32 @@ def run_system(
             estimator_name,
             estimator.get_params(),
             task,
+            seed,
             fit_time_s=fit_time,
             fit_report=report,
             **fields,
         )
-        write_cell(spec.results_dir, cell)
+        write_cell(spec.results_dir, cell, kept)
         yield cell
 
 
 @dataclass(frozen=True)
 class Job:
-    """One unit of work: fit ``estimator`` on ``system`` once, score it on ``regimes``."""
+    """One unit of work: fit ``estimator`` on ``system`` with ``seed`` once, score it on ``regimes``."""
 
     estimator: str
     system: str
     regimes: tuple[str, ...]
+    seed: int = 0
 
 
 def run_job(spec: RunSpec, job: Job) -> list[CellResult]:
     """Run ``job`` (each cell is written as it finishes); returns its cells."""
-    return list(run_system(spec, job.estimator, job.system, job.regimes))
+    return list(run_system(spec, job.estimator, job.system, job.regimes, job.seed))
 
 
-def _done(spec: RunSpec, estimator: str, system: str, regime: str) -> CellResult | None:
-    path = cell_path(spec.results_dir, estimator, system, regime, spec.profile.name, spec.seed)
+def _done(spec: RunSpec, estimator: str, system: str, regime: str, seed: int) -> CellResult | None:
+    path = cell_path(spec.results_dir, estimator, system, regime, spec.profile.name, seed)
     if spec.force or not path.exists():
         return None
     cell = read_cell(path)
@@ -213,19 +244,25 @@ def _done(spec: RunSpec, estimator: str, system: str, regime: str) -> CellResult
 
 
 def plan(spec: RunSpec) -> tuple[list[Job], list[CellResult]]:
-    """The jobs still to run and the cells already done (skipped unless ``spec.force``)."""
+    """The jobs still to run and the cells already done (skipped unless ``spec.force``).
+
+    Jobs come estimator by estimator, each over its seeds and systems: the
+    first KKL estimator trains every Phase-1 model, so parallel workers train
+    different models instead of waiting for one another's claim.
+    """
     jobs, cached = [], []
     for estimator in spec.estimators:
-        for system in spec.systems:
-            todo = []
-            for regime in spec.regimes:
-                done = _done(spec, estimator, system, regime)
-                if done is None:
-                    todo.append(regime)
-                else:
-                    cached.append(done)
-            if todo:
-                jobs.append(Job(estimator, system, tuple(todo)))
+        for seed in spec.seeds_for(estimator):
+            for system in spec.systems:
+                todo = []
+                for regime in spec.regimes:
+                    done = _done(spec, estimator, system, regime, seed)
+                    if done is None:
+                        todo.append(regime)
+                    else:
+                        cached.append(done)
+                if todo:
+                    jobs.append(Job(estimator, system, tuple(todo), seed))
     return jobs, cached
 
 
@@ -233,13 +270,14 @@ def _lost_cells(spec: RunSpec, job: Job, error: BaseException) -> list[CellResul
     """Cells of ``job`` after its worker died: those it wrote, the rest as errors (written)."""
     cells = []
     for regime in job.regimes:
-        done = _done(spec, job.estimator, job.system, regime)
+        done = _done(spec, job.estimator, job.system, regime, job.seed)
         if done is None:
             done = _cell(
                 spec,
                 job.estimator,
                 {},
                 Task(job.system, regime),
+                job.seed,
                 status="error",
                 error=f"not completed: the run stopped ({type(error).__name__}: {error})",
             )
@@ -283,14 +321,14 @@ def run(
     returned = set()
     try:
         for cells in execute(run_job, [(spec, job) for job in todo], jobs, executor, scheduler):
-            returned.add((cells[0].estimator, cells[0].system))
+            returned.add((cells[0].estimator, cells[0].system, cells[0].seed))
             for cell in cells:
                 record(cell)
     except (KeyboardInterrupt, ValueError):
         raise
     except Exception as error:  # a worker died (killed, out of memory): keep what finished
         for job in todo:
-            if (job.estimator, job.system) not in returned:
+            if (job.estimator, job.system, job.seed) not in returned:
                 for cell in _lost_cells(spec, job, error):
                     record(cell)
     return summary

@@ -1,12 +1,17 @@
 """Leaderboard tables from stored results, in the paper's layout.
 
 Rows are estimators, columns are (system, regime) pairs grouped two systems
-per table as in the paper's Tables 1-2, and a cell reads ``RMSE (SMAPE%)``,
-the mean over the test trajectories. The best RMSE of each column is marked
-(bold). A cell where some trajectory diverged reads ``diverged (k/n)``; a
-cell whose estimator failed reads ``error``. The paper's published numbers
-can be shown as reference rows. Nothing here recomputes a metric: it reads
-what the harness recorded.
+per table as in the paper's Tables 1-2. A cell reads ``RMSE ± std (SMAPE %)``:
+for each training seed the mean over the test trajectories, then the mean
+of those over the seeds, ``±`` their standard deviation over the seeds
+(absent for one seed). The ``Seeds`` column says how many. Marks come from
+:mod:`kkl_bench.significance`: **bold** where the lowest RMSE beats every
+other entry of its column by a paired bootstrap at 5 %, *italic* for the
+entries tied with the lowest (not distinguishable from it). A cell where some
+trajectory diverged reads ``diverged (k/n)`` (over all seeds); a cell whose
+estimator failed reads ``error``. The paper's published numbers can be shown
+as reference rows (never marked: they come from other test sets). Nothing
+here recomputes a metric: it reads what the harness recorded.
 """
 
 from __future__ import annotations
@@ -16,10 +21,12 @@ import io
 import math
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
 from kkl_bench.results import mean_and_std
+from kkl_bench.significance import mark_column
 
 FORMATS = ("markdown", "latex", "csv")
 PAPER_PREFIX = "paper:"
@@ -30,6 +37,10 @@ SYSTEM_TITLES = {
     "lorenz": "Lorenz",
 }
 REGIME_TITLES = {"zero": "Zero", "constant": "Const", "sinusoid": "Sin", "square": "Sqr"}
+MARKUP = {
+    "markdown": {"best": ("**", "**"), "tied": ("*", "*")},
+    "latex": {"best": (r"\textbf{", "}"), "tied": (r"\textit{", "}")},
+}
 
 
 def paper_results() -> pd.DataFrame:
@@ -38,46 +49,97 @@ def paper_results() -> pd.DataFrame:
     return pd.read_csv(io.StringIO(text))
 
 
+def _seed_mean_and_std(per_seed: list[float]) -> tuple[float, float]:
+    """Mean over seeds and the standard deviation over seeds (ddof 1; NaN for one seed)."""
+    if not per_seed:
+        return math.nan, math.nan
+    if not all(math.isfinite(value) for value in per_seed):
+        return math.inf, math.inf
+    values = np.asarray(per_seed)
+    return float(values.mean()), float(values.std(ddof=1)) if len(values) > 1 else math.nan
+
+
+def _spent(cells: pd.DataFrame) -> dict[str, float]:
+    """Phase-1 and second-phase steps and samples from the first cell's fit report."""
+    reports = cells["fit_report"] if "fit_report" in cells else pd.Series([{}] * len(cells))
+    spent = next((r["spent"] for r in reports if isinstance(r, dict) and "spent" in r), {})
+    return {
+        f"{phase}_{unit}": spent.get(phase, {}).get(unit, math.nan)
+        for phase in ("phase1", "phase2")
+        for unit in ("steps", "samples")
+    }
+
+
 def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFrame:
     """One row per (estimator, system, regime): the numbers every table shows.
 
-    Columns: estimator, system, regime, status, n_test, n_diverged, rmse_mean,
-    rmse_std, smape_mean, nrmse_mean, fit_time_s, estimate_us_per_step, task,
-    protocol. Several seeds of one cell are pooled.
+    Columns: estimator, system, regime, status, n_seeds, n_test (per seed),
+    n_diverged (over all seeds), rmse_mean and rmse_seed_std (mean and
+    standard deviation over seeds of the per-seed mean RMSE), smape_mean,
+    smape_seed_std, nrmse_mean, fit_time_s, estimate_us_per_step (means over
+    seeds), task, protocol, map quality, the steps and samples spent
+    (``phase1_steps`` ...), ``mark`` (``best``, ``tied`` or empty, see
+    :mod:`kkl_bench.significance`) and ``rmse_trajectories`` (per seed, per
+    trajectory; ``(n_seeds, n_test)`` nested lists, not written to CSV).
     """
+    if "seed" not in results:
+        results = results.assign(seed=0)
     columns = ["estimator", "system", "regime"]
     rows = []
     for (estimator, system, regime), cells in results.groupby(columns, sort=False):
+        cells = cells.sort_values("seed")
         scored = cells[cells["status"] == "ok"]
-        rmse = [value for values in scored["rmse"] for value in values]
-        rmse_mean, rmse_std = mean_and_std(rmse)
+        rmse_by_seed = [list(values) for values in scored["rmse"]]
+        rmse_mean, rmse_std = _seed_mean_and_std([mean_and_std(v)[0] for v in rmse_by_seed])
+        smape_mean, smape_std = _seed_mean_and_std([mean_and_std(v)[0] for v in scored["smape"]])
         rows.append(
             {
                 "estimator": estimator,
                 "system": system,
                 "regime": regime,
-                "status": "ok" if len(scored) == len(cells) else "error",
-                "n_test": len(rmse),
-                "n_diverged": sum(not math.isfinite(value) for value in rmse),
+                "status": "ok" if len(scored) == len(cells) and len(scored) else "error",
+                "n_seeds": len(scored),
+                "n_test": len(rmse_by_seed[0]) if rmse_by_seed else 0,
+                "n_diverged": sum(not math.isfinite(v) for values in rmse_by_seed for v in values),
                 "rmse_mean": rmse_mean,
-                "rmse_std": rmse_std,
-                "smape_mean": mean_and_std([v for values in scored["smape"] for v in values])[0],
-                "nrmse_mean": mean_and_std([v for values in scored["nrmse"] for v in values])[0],
+                "rmse_seed_std": rmse_std,
+                "smape_mean": smape_mean,
+                "smape_seed_std": smape_std,
+                "nrmse_mean": _seed_mean_and_std([mean_and_std(v)[0] for v in scored["nrmse"]])[0],
                 "fit_time_s": scored["fit_time_s"].mean(),
                 "estimate_us_per_step": scored["estimate_us_per_step"].mean(),
                 "task": cells["task"].iloc[0],
                 "protocol": cells["protocol"].iloc[0],
                 **_map_quality(cells),
+                **_spent(cells),
+                "rmse_trajectories": rmse_by_seed,
             }
         )
     summary = pd.DataFrame(rows)
+    summary["mark"] = _marks(summary)
     if with_paper:
         paper = paper_results().rename(columns={"rmse": "rmse_mean", "smape_percent": "smape_mean"})
         paper["estimator"] = PAPER_PREFIX + paper.pop("method")
         paper["status"] = "ok"
         paper["n_diverged"] = 0
+        paper["mark"] = ""
         summary = pd.concat([summary, paper], ignore_index=True)
     return summary
+
+
+def _marks(summary: pd.DataFrame) -> pd.Series:
+    """The significance mark of every row, decided column by column."""
+    marks = pd.Series("", index=summary.index, dtype=object)
+    for _, column in summary.groupby(["system", "regime"], sort=False):
+        scored = column[(column["status"] == "ok") & (column["n_seeds"] > 0)]
+        if scored.empty or len({len(t[0]) for t in scored["rmse_trajectories"]}) != 1:
+            continue  # no entries, or different test sets: nothing to compare
+        decided = mark_column(
+            {index: np.asarray(values) for index, values in scored["rmse_trajectories"].items()}
+        )
+        for index, mark in decided.items():
+            marks[index] = mark
+    return marks
 
 
 MAP_QUALITY = ("reconstruction_rmse_unforced", "reconstruction_rmse_forced", "pde_residual_forced")
@@ -93,56 +155,54 @@ def _map_quality(cells: pd.DataFrame) -> dict[str, float]:
     return {key: quality.get(key, math.nan) for key in MAP_QUALITY}
 
 
-def _format_cell(row: pd.Series, best: bool, bold: tuple[str, str]) -> str:
+def _format_cell(row: pd.Series, markup: dict[str, tuple[str, str]]) -> str:
+    """``RMSE ± std (SMAPE)``, marked; ``diverged (k/n)`` or ``error`` where it applies."""
     if row["status"] != "ok":
         return "error"
     if row["n_diverged"]:
-        return f"diverged ({row['n_diverged']}/{row['n_test']})"
+        return f"diverged ({row['n_diverged']}/{row['n_test'] * row['n_seeds']})"
     rmse = f"{row['rmse_mean']:.3g}"
-    if best:
-        rmse = f"{bold[0]}{rmse}{bold[1]}"
+    mark = row.get("mark", "")
+    if mark:
+        rmse = f"{markup[mark][0]}{rmse}{markup[mark][1]}"
+    spread = row.get("rmse_seed_std", math.nan)
+    if isinstance(spread, float) and math.isfinite(spread):
+        rmse += f" ± {spread:.2g}"
     return f"{rmse} ({row['smape_mean']:.3g})"
+
+
+def _seeds(rows: pd.DataFrame) -> str:
+    """How many seeds an estimator's cells have: ``3``, or ``2-3`` where they differ."""
+    counts = rows["n_seeds"].dropna() if "n_seeds" in rows else pd.Series(dtype=float)
+    if counts.empty:
+        return ""
+    low, high = int(counts.min()), int(counts.max())
+    return str(low) if low == high else f"{low}-{high}"
 
 
 def _grid(
     summary: pd.DataFrame,
     systems: Sequence[str],
     regimes: Sequence[str],
-    bold: tuple[str, str],
+    markup: dict[str, tuple[str, str]],
     escape: Callable[[str], str] = str,
 ) -> tuple[list[str], list[list[str]]]:
     """Header and rows of one table over ``systems`` x ``regimes``; ``escape`` quotes labels."""
     estimators = list(dict.fromkeys(summary["estimator"]))
     indexed = summary.set_index(["estimator", "system", "regime"])
-    header = ["Estimator"] + [
+    header = ["Estimator", "Seeds"] + [
         escape(f"{SYSTEM_TITLES.get(s, s)} {REGIME_TITLES.get(r, r)}")
         for s in systems
         for r in regimes
     ]
-    best = {}
-    for system in systems:
-        for regime in regimes:
-            column = summary[
-                (summary["system"] == system)
-                & (summary["regime"] == regime)
-                & (summary["status"] == "ok")
-                & (summary["n_diverged"] == 0)
-            ]
-            if len(column):
-                best[system, regime] = column["rmse_mean"].min()
     rows = []
     for estimator in estimators:
-        row = [escape(estimator)]
+        own = summary[summary["estimator"] == estimator]
+        row = [escape(estimator), _seeds(own)]
         for system in systems:
             for regime in regimes:
                 key = (estimator, system, regime)
-                if key not in indexed.index:
-                    row.append("-")
-                    continue
-                cell = indexed.loc[key]
-                row.append(
-                    _format_cell(cell, cell["rmse_mean"] == best.get((system, regime)), bold)
-                )
+                row.append(_format_cell(indexed.loc[key], markup) if key in indexed.index else "-")
         rows.append(row)
     return header, rows
 
@@ -168,16 +228,18 @@ def render(summary: pd.DataFrame, fmt: str = "markdown", systems_per_table: int 
     if summary.empty:
         raise ValueError("no results to tabulate")
     if fmt == "csv":
-        return summary.to_csv(index=False, float_format="%.6g")
+        return summary.drop(columns="rmse_trajectories", errors="ignore").to_csv(
+            index=False, float_format="%.6g"
+        )
     systems = _in_paper_order(summary["system"], SYSTEM_TITLES)
     regimes = _in_paper_order(summary["regime"], REGIME_TITLES)
     tables = []
     for group in _chunks(systems, systems_per_table):
         if fmt == "markdown":
-            header, rows = _grid(summary, group, regimes, ("**", "**"))
+            header, rows = _grid(summary, group, regimes, MARKUP["markdown"])
             tables.append(tabulate(rows, headers=header, tablefmt="github", disable_numparse=True))
         else:
-            header, rows = _grid(summary, group, regimes, (r"\textbf{", "}"), _latex_escape)
+            header, rows = _grid(summary, group, regimes, MARKUP["latex"], _latex_escape)
             tables.append(
                 _booktabs(
                     tabulate(rows, headers=header, tablefmt="latex_raw", disable_numparse=True)
@@ -200,35 +262,75 @@ def _booktabs(latex: str) -> str:
     )
 
 
-def cost_table(summary: pd.DataFrame) -> str:
-    """Markdown table per (estimator, system): fit time, estimation cost, NRMSE and, for
-    KKL estimators, the quality of their maps (which bounds what they can reach)."""
+COST_COLUMNS = {
+    "fit_time_s": "Fit time (s)",
+    "estimate_us_per_step": "Estimation (µs / trajectory-step)",
+    "phase1_steps": "Phase 1 steps",
+    "phase1_samples": "Phase 1 samples",
+    "phase2_steps": "2nd phase steps",
+    "phase2_samples": "2nd phase samples",
+    "nrmse_mean": "NRMSE (mean over regimes)",
+    "reconstruction_rmse_unforced": "|x - T*(T(x))| unforced",
+    "reconstruction_rmse_forced": "|x - T*(T(x))| forced",
+    "pde_residual_forced": "PDE residual (rel.) forced",
+}
+"""The cost table's columns: per (estimator, system), means over regimes and seeds."""
+
+
+def cost_frame(summary: pd.DataFrame) -> pd.DataFrame:
+    """Per (estimator, system): costs, training budget spent, NRMSE and map quality."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
     grouped = ours.groupby(["estimator", "system"]).agg(
-        fit_time_s=("fit_time_s", "mean"),
-        estimate_us_per_step=("estimate_us_per_step", "mean"),
-        nrmse_mean=("nrmse_mean", "mean"),
-        **{key: (key, "first") for key in MAP_QUALITY},
+        **{
+            key: (key, "first" if key in MAP_QUALITY or "phase" in key else "mean")
+            for key in COST_COLUMNS
+        }
     )
     order = {system: i for i, system in enumerate(_in_paper_order(ours["system"], SYSTEM_TITLES))}
-    rows = grouped.reset_index().sort_values(
+    return grouped.reset_index().sort_values(
         ["estimator", "system"], key=lambda c: c.map(order) if c.name == "system" else c
     )
+
+
+def cost_table(summary: pd.DataFrame) -> str:
+    """Markdown table per (estimator, system): fit time, estimation cost, the optimizer
+    steps and samples of Phase 1 (shared by the KKL rows of a system) and of the
+    estimator's own second phase, NRMSE and, for KKL estimators, the quality of their maps."""
+    rows = cost_frame(summary)
     rows = rows.astype(object).where(rows.notna(), None)
     return tabulate(
         rows,
-        headers=[
-            "Estimator",
-            "System",
-            "Fit time (s)",
-            "Estimation (µs / trajectory-step)",
-            "NRMSE (mean over regimes)",
-            "|x - T*(T(x))| unforced",
-            "|x - T*(T(x))| forced",
-            "PDE residual (rel.) forced",
-        ],
+        headers=["Estimator", "System", *COST_COLUMNS.values()],
         tablefmt="github",
         floatfmt=".3g",
+        intfmt=",",
         showindex=False,
         missingval="",
     )
+
+
+def paper_comparison(summary: pd.DataFrame) -> str:
+    """Markdown table: our RMSE over the paper's for each of the paper's methods and cells."""
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)].set_index(
+        ["estimator", "system", "regime"]
+    )
+    paper = paper_results()
+    systems = _in_paper_order(paper["system"], SYSTEM_TITLES)
+    regimes = _in_paper_order(paper["regime"], REGIME_TITLES)
+    header = ["Method (ours / paper)"] + [
+        f"{SYSTEM_TITLES[s]} {REGIME_TITLES[r]}" for s in systems for r in regimes
+    ]
+    rows = []
+    for method, theirs in paper.groupby("method", sort=False):
+        theirs = theirs.set_index(["system", "regime"])["rmse"]
+        row = [method]
+        for system in systems:
+            for regime in regimes:
+                key = (method, system, regime)
+                if key not in ours.index:
+                    row.append("-")
+                    continue
+                ratio = ours.loc[key, "rmse_mean"] / theirs[system, regime]
+                row.append(f"{ratio:.2g}x" if math.isfinite(ratio) else "diverged")
+        rows.append(row)
+    return tabulate(rows, headers=header, tablefmt="github", disable_numparse=True)

@@ -2,8 +2,10 @@
 
 A *cell* is one (estimator, system, regime, profile, seed). Its file holds the
 cell's aggregate metrics, the per-trajectory values behind them, the costs,
-and the provenance needed to reproduce it. Files are written to a temporary
-name and renamed into place, so a reader (or a crash) never sees half a file.
+and the provenance needed to reproduce it. Beside it, a compressed ``.npz``
+keeps the truth and the estimate of the first test trajectory, so figures
+never need a rerun. Files are written to a temporary name and renamed into
+place, so a reader (or a crash) never sees half a file.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import os
 import platform
 import subprocess
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from functools import cache
@@ -21,6 +24,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 RECORD_FORMAT = 1
@@ -66,6 +70,16 @@ class CellResult:
         return sum(not math.isfinite(value) for value in self.rmse)
 
 
+@dataclass(frozen=True)
+class KeptEstimate:
+    """One test trajectory kept with its cell: ``t: (steps,)`` in s, truth ``x`` and
+    estimate ``x_hat``, both ``(steps, n_x)``. Stored as float32."""
+
+    t: np.ndarray
+    x: np.ndarray
+    x_hat: np.ndarray
+
+
 def cell_path(
     results_dir: Path, estimator: str, system: str, regime: str, profile: str, seed: int
 ) -> Path:
@@ -73,22 +87,49 @@ def cell_path(
     return Path(results_dir) / profile / estimator / system / f"{regime}-seed{seed}.json"
 
 
-def write_cell(results_dir: Path, cell: CellResult) -> Path:
-    """Write ``cell`` atomically; returns its path."""
+def estimate_path(path: Path) -> Path:
+    """Where the kept estimate of the cell recorded at ``path`` lives."""
+    return Path(path).with_suffix(".npz")
+
+
+def write_cell(results_dir: Path, cell: CellResult, kept: KeptEstimate | None = None) -> Path:
+    """Write ``cell`` (and ``kept`` beside it, first) atomically; returns the record's path.
+
+    Without ``kept`` a stale estimate file of an earlier run is removed.
+    """
     path = cell_path(results_dir, cell.estimator, cell.system, cell.regime, cell.profile, cell.seed)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if kept is None:
+        estimate_path(path).unlink(missing_ok=True)
+    else:
+        arrays = {name: np.asarray(value, np.float32) for name, value in asdict(kept).items()}
+        _write_atomic(estimate_path(path), lambda file: np.savez_compressed(file, **arrays))
     text = json.dumps(_to_json(asdict(cell)), indent=1, allow_nan=False)
+    _write_atomic(path, lambda file: file.write(text.encode()))
+    return path
+
+
+def read_estimate(path: Path) -> KeptEstimate | None:
+    """The kept estimate of the cell recorded at ``path``, or None if it has none."""
+    stored = estimate_path(path)
+    if not stored.exists():
+        return None
+    with np.load(stored) as arrays:
+        return KeptEstimate(**{name: arrays[name].astype(float) for name in arrays.files})
+
+
+def _write_atomic(path: Path, write: Callable[[Any], Any]) -> None:
+    """Call ``write(binary_file)`` on a temporary file, then rename it to ``path``."""
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(handle, "w") as file:
-            file.write(text)
+        with os.fdopen(handle, "wb") as file:
+            write(file)
             file.flush()
             os.fsync(file.fileno())
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
-    return path
 
 
 def check_writable(results_dir: Path) -> None:

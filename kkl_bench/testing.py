@@ -27,11 +27,12 @@ from typing import Any
 
 import numpy as np
 
+from kkl_bench import variants
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.streams import sealed_test_streams
-from kkl_bench.registry import estimators, regimes, systems
+from kkl_bench.registry import regimes, systems
 from kkl_bench.task import get_profile
 from kkl_bench.training import TrainingData
 
@@ -45,7 +46,8 @@ class Conformance:
 
     Parameters
     ----------
-    estimator: registry name, or an unfitted estimator instance.
+    estimator: registry name or variant (``static_hyperkkl[guard=True]``), or an
+        unfitted estimator instance.
     system: registry name of the system to check on.
     budget: training budget for ``fit`` (default: the quick profile's for this estimator).
     """
@@ -58,10 +60,12 @@ class Conformance:
     ) -> None:
         if isinstance(estimator, str):
             self.name = estimator
-            self.prototype = estimators.get(estimator)()
+            self.prototype = variants.build(estimator)
+            budget_name = variants.base_name(estimator)
         else:
             self.name = type(estimator).__name__
             self.prototype = estimator
+            budget_name = self.name
         model = systems.get(system)()
         self.context = FitContext(
             system=model,
@@ -72,7 +76,7 @@ class Conformance:
             training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=0),
             seed=0,
             profile="quick",
-            budget=get_profile("quick").budget_for(self.name) if budget is None else budget,
+            budget=get_profile("quick").budget_for(budget_name) if budget is None else budget,
             cache_dir=self.fresh_cache(),
         )
         self.data: Trajectories = self.context.training.simulate(

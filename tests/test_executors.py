@@ -13,7 +13,7 @@ import pytest
 from kkl_bench import harness
 from kkl_bench.executors import execute
 from kkl_bench.harness import RunSpec, run
-from kkl_bench.results import load_results
+from kkl_bench.results import cell_path, load_results
 from kkl_bench.task import get_profile
 
 GRID = dict(
@@ -124,7 +124,13 @@ def test_an_interrupted_run_resumes_with_nothing_lost_or_duplicated(tmp_path, si
 def job_whose_worker_dies_on_vdp(spec, job):
     """Runs the job, except that the worker process scoring vdp dies without a word."""
     if job.system == "vdp":
-        time.sleep(3)  # let the other worker finish its job first
+        other = [
+            cell_path(spec.results_dir, job.estimator, "duffing", r, "quick", 0)
+            for r in job.regimes
+        ]
+        deadline = time.monotonic() + 60
+        while not all(path.exists() for path in other) and time.monotonic() < deadline:
+            time.sleep(0.1)  # let the other worker finish its job first
         os._exit(1)
     return harness.run_job(spec, job)
 

@@ -301,8 +301,8 @@ def test_injection_kkl_converges_under_input_where_the_autonomous_observer_canno
 @pytest.fixture(scope="module")
 def fitted_family(tmp_path_factory):
     """The KKL plugins fitted with a tiny budget on duffing, sharing one cache
-    (``pure_injection_kkl``: injection_kkl without adaptation; ``unguarded_static_hyperkkl``:
-    static_hyperkkl with gain 1, as in the paper)."""
+    (``pure_injection_kkl``: injection_kkl without adaptation; ``guarded_static_hyperkkl``:
+    static_hyperkkl with a validated gain; the default is the paper's gain 1)."""
     cache = tmp_path_factory.mktemp("kkl-cache")
     context = context_for(systems.get("duffing")(), TINY, cache)
     names = (
@@ -314,9 +314,7 @@ def fitted_family(tmp_path_factory):
     )
     family = {name: estimators.get(name)().fit(context) for name in names}
     family["pure_injection_kkl"] = estimators.get("injection_kkl")(adapt=False).fit(context)
-    family["unguarded_static_hyperkkl"] = estimators.get("static_hyperkkl")(guard=False).fit(
-        context
-    )
+    family["guarded_static_hyperkkl"] = estimators.get("static_hyperkkl")(guard=True).fit(context)
     return family
 
 
@@ -326,9 +324,7 @@ def duffing_data(regime, n_samples=300):
     )
 
 
-@pytest.mark.parametrize(
-    "name", ["unguarded_static_hyperkkl", "dynamic_hyperkkl", "pure_injection_kkl"]
-)
+@pytest.mark.parametrize("name", ["static_hyperkkl", "dynamic_hyperkkl", "pure_injection_kkl"])
 def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, name):
     data = duffing_data("zero")
     reference = fitted_family["autonomous_kkl"].estimate(data.t, data.y, data.u)
@@ -342,8 +338,8 @@ def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, na
 
 def test_guarded_static_hyperkkl_uses_the_gain_with_the_best_validation_score(fitted_family):
     guarded, unguarded = (
+        fitted_family["guarded_static_hyperkkl"],
         fitted_family["static_hyperkkl"],
-        fitted_family["unguarded_static_hyperkkl"],
     )
     scores = guarded.log_["gain_selection"]
     assert set(scores) == {"0", "0.25", "0.5", "0.75", "1"} and unguarded.gain_ == 1.0
@@ -358,7 +354,9 @@ def test_guarded_static_hyperkkl_uses_the_gain_with_the_best_validation_score(fi
 def test_adapted_injection_kkl_trains_a_copy_of_the_decoder_and_logs_its_rounds(fitted_family):
     adapted, pure = fitted_family["injection_kkl"], fitted_family["pure_injection_kkl"]
     log = adapted.fit_report()["training_log"]
-    assert list(log) == ["injection_gain", "gain_selection"] + [f"round {i}" for i in range(1, 5)]
+    assert list(log) == ["injection_gain", "gain_selection"] + [
+        f"round {i}" for i in range(1, 5)
+    ] + ["spent"]
     assert set(log["gain_selection"]) == {"0", "0.25", "0.5", "0.75", "1"}
     assert log["injection_gain"] == adapted.gain_ and pure.gain_ == 1.0
     assert "training_log" not in pure.fit_report()
@@ -405,7 +403,9 @@ def test_fit_report_records_rates_selection_quality_and_log(fitted_family):
 
 
 def test_curriculum_walks_every_level_and_records_it(fitted_family):
-    log = fitted_family["curriculum_kkl"].log_
+    log = {
+        key: value for key, value in fitted_family["curriculum_kkl"].log_.items() if key != "spent"
+    }
     assert list(log) == [
         "constant",
         "sine 0.2-0.8 rad/s",
@@ -461,3 +461,28 @@ def test_checkpoints_are_reused_and_invalidated(tmp_path, monkeypatch):
     assert len(calls) == 6  # a changed budget retrains
     fit_autonomous(context_for(system, TINY, tmp_path, seed=1), config)
     assert len(calls) == 9  # so does another seed
+
+
+def test_fit_reports_count_the_optimizer_steps_and_samples_each_phase_spent(fitted_family):
+    batch = 1024  # Phase1Config.batch; the encoder draws data pairs and collocation points
+    selection = len(TINY["rate_candidates"]) * TINY["selection_steps"]
+    phase1 = {
+        "steps": selection + TINY["encoder_steps"] + TINY["decoder_steps"],
+        "samples": batch * (selection + 2 * TINY["encoder_steps"] + TINY["decoder_steps"]),
+    }
+    epochs = sum(
+        level["epochs"]
+        for key, level in fitted_family["curriculum_kkl"].log_.items()
+        if key != "spent"
+    )
+    second = {
+        "autonomous_kkl": {"steps": 0, "samples": 0},
+        "pure_injection_kkl": {"steps": 0, "samples": 0},
+        "injection_kkl": {"steps": 40, "samples": 40 * 1024},
+        "static_hyperkkl": {"steps": 40, "samples": 40 * 256},  # phase2_batch
+        "dynamic_hyperkkl": {"steps": 40, "samples": 40 * 256},  # 32 windows x 8 points
+        "curriculum_kkl": {"steps": 5 * epochs, "samples": 5 * epochs * 1024},
+    }
+    for name, phase2 in second.items():
+        spent = fitted_family[name].fit_report()["spent"]
+        assert spent == {"phase1": phase1, "phase2": phase2}, name

@@ -2,32 +2,43 @@
 
 import math
 
+import numpy as np
 import pandas as pd
 import pytest
 
 from kkl_bench.leaderboard import paper_results, render, summary_table
+from kkl_bench.significance import mark_column, ratio_lower_bound
 
 
-def results_frame():
+def results_frame(entries=(("good", [0.1, 0.3]), ("bad", [1.0, 3.0]), ("broken", [0.1, math.inf]))):
+    """Cells of ``(estimator, per-trajectory RMSE)`` entries on two systems; one seed each,
+    or several when an entry's RMSE is a list of lists (one per seed)."""
     rows = []
-    for estimator, rmse in (("good", [0.1, 0.3]), ("bad", [1.0, 3.0]), ("broken", [0.1, math.inf])):
-        for system in ("vdp", "duffing"):
-            rows.append(
-                dict(
-                    estimator=estimator,
-                    system=system,
-                    regime="zero",
-                    task=f"{system}/zero@v1",
-                    protocol="v1+E1",
-                    status="ok",
-                    rmse=rmse,
-                    smape=[10.0, 30.0],
-                    nrmse=[1.0, 1.0],
-                    fit_time_s=1.0,
-                    estimate_us_per_step=2.0,
+    for estimator, rmse in entries:
+        by_seed = rmse if isinstance(rmse[0], list) else [rmse]
+        for seed, values in enumerate(by_seed):
+            for system in ("vdp", "duffing"):
+                rows.append(
+                    dict(
+                        estimator=estimator,
+                        system=system,
+                        regime="zero",
+                        seed=seed,
+                        task=f"{system}/zero@v1",
+                        protocol="v1+E1",
+                        status="ok",
+                        rmse=values,
+                        smape=[20.0 * (1 + seed)] * len(values),
+                        nrmse=[1.0] * len(values),
+                        fit_time_s=1.0,
+                        estimate_us_per_step=2.0,
+                    )
                 )
-            )
     return pd.DataFrame(rows)
+
+
+def row_of(text, estimator):
+    return next(line for line in text.splitlines() if line.startswith(f"| {estimator} "))
 
 
 def test_summary_pools_trajectories_and_counts_divergence():
@@ -40,10 +51,36 @@ def test_summary_pools_trajectories_and_counts_divergence():
 def test_markdown_marks_the_best_and_shows_divergence_in_paper_order():
     text = render(summary_table(results_frame()), "markdown")
     header = text.splitlines()[0]
-    assert header.index("Duffing Zero") < header.index("Van der Pol Zero")
-    assert "| good        | **0.2** (20)   |" in text
-    assert "| bad         | 2 (20)         |" in text
-    assert "diverged (1/2)" in text
+    assert header.index("Seeds") < header.index("Duffing Zero") < header.index("Van der Pol Zero")
+    assert "| **0.2** (20) " in row_of(text, "good")
+    assert "| 2 (20) " in row_of(text, "bad")
+    assert "diverged (1/2)" in row_of(text, "broken")
+
+
+def test_seeds_are_aggregated_as_mean_and_spread_of_the_per_seed_means():
+    frame = results_frame((("seeded", [[0.1, 0.3], [0.3, 0.5], [0.5, 0.7]]),))
+    summary = summary_table(frame).set_index(["estimator", "system"])
+    row = summary.loc[("seeded", "vdp")]
+    assert row["n_seeds"] == 3 and row["n_test"] == 2
+    assert row["rmse_mean"] == pytest.approx(0.4)  # per-seed means 0.2, 0.4, 0.6
+    assert row["rmse_seed_std"] == pytest.approx(0.2)  # sample standard deviation
+    assert row["smape_mean"] == pytest.approx(40.0) and row["smape_seed_std"] == pytest.approx(20.0)
+    text = render(summary_table(frame), "markdown")
+    assert "| 3 " in row_of(text, "seeded") and "| 0.4 ± 0.2 (40) " in text  # alone: unmarked
+
+
+def test_entries_a_reseed_could_reorder_are_tied_not_bold():
+    close = results_frame(
+        (
+            ("first", [[0.10, 0.20, 0.30, 0.40], [0.12, 0.22, 0.32, 0.42]]),
+            ("second", [[0.11, 0.21, 0.31, 0.41], [0.11, 0.21, 0.31, 0.41]]),
+            ("far", [[1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0, 4.0]]),
+        )
+    )
+    text = render(summary_table(close), "markdown")
+    assert "| *0.26* ± 0.014 (30) " in row_of(text, "first")
+    assert "| *0.26* ± 0 (30) " in row_of(text, "second")
+    assert "**" not in text and "*2.5*" not in row_of(text, "far")
 
 
 def test_latex_uses_booktabs_and_bold():
@@ -55,7 +92,7 @@ def test_latex_uses_booktabs_and_bold():
 def test_csv_is_the_tidy_summary():
     text = render(summary_table(results_frame()), "csv")
     assert text.splitlines()[0].startswith(
-        "estimator,system,regime,status,n_test,n_diverged,rmse_mean"
+        "estimator,system,regime,status,n_seeds,n_test,n_diverged,rmse_mean,rmse_seed_std"
     )
     assert len(text.splitlines()) == 1 + 6
 
@@ -77,3 +114,20 @@ def test_unknown_format_lists_the_valid_ones():
         ValueError, match="unknown format 'html'; valid formats: markdown, latex, csv"
     ):
         render(summary_table(results_frame()), "html")
+
+
+def test_bootstrap_bound_of_a_constant_ratio_is_that_ratio():
+    best = np.array([[0.1, 0.2, 0.4]])
+    assert ratio_lower_bound(3 * best, best) == pytest.approx(3.0)
+    assert ratio_lower_bound(best, best) == pytest.approx(1.0)
+
+
+def test_seed_spread_alone_can_make_a_paired_win_a_tie():
+    trajectories = np.linspace(0.1, 1.0, 20)
+    steady = np.stack([trajectories] * 3)  # always 10 % better on every trajectory ...
+    worse = 1.1 * steady
+    assert mark_column({"a": steady, "b": worse}) == {"a": "best", "b": ""}
+    # ... but if a's seeds spread from 0.7x to 1.3x, three seeds cannot tell them apart
+    spread = np.stack([0.7 * trajectories, trajectories, 1.3 * trajectories])
+    assert mark_column({"a": spread * 0.99, "b": worse}) == {"a": "tied", "b": "tied"}
+    assert mark_column({"a": steady, "b": worse, "c": np.array([[np.inf] * 20])})["c"] == ""

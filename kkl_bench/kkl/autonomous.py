@@ -30,13 +30,13 @@ from kkl_bench.kkl.data import Box, ObserverData, burn_in_steps, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.kkl.networks import NormalizedMLP, seeded
-from kkl_bench.kkl.optimize import minimize
+from kkl_bench.kkl.optimize import counting, minimize
 from kkl_bench.kkl.pde import normalized_field_rms, pde_residual
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.signals import InputFamily
 from kkl_bench.registry import regimes
 
-TOOLKIT_VERSION = 4
+TOOLKIT_VERSION = 5
 """Bump when a change to this module changes what a given configuration trains."""
 
 RATE_CANDIDATES = ((1.0, 5.0), (2.0, 10.0), (5.0, 20.0), (10.0, 40.0))
@@ -81,6 +81,8 @@ class AutonomousModel:
     """The cache description that determines this model (extended by later phases' keys)."""
     quality: dict[str, float] = field(default_factory=dict)
     """Map-quality numbers on held-out training-stream states (see :func:`map_quality`)."""
+    spent: dict[str, int] = field(default_factory=dict)
+    """Optimizer steps and samples Phase 1 took (rate selection, encoder, decoder)."""
 
     def report(self) -> dict:
         """What a KKL plugin records with its results: rates, their selection, map quality."""
@@ -166,7 +168,7 @@ def train_decoder(
         rows = torch.randint(len(z), (batch,), generator=generator)
         return decoder.output_difference(decoder(z[rows]) - x[rows]).pow(2).sum(-1).mean()
 
-    return minimize(loss, decoder.parameters(), steps, description=description)
+    return minimize(loss, decoder.parameters(), steps, batch, description=description)
 
 
 def _select_rates(
@@ -244,10 +246,39 @@ def _train_encoder(
         normalized = encoder.output_difference(residual) / field_scale
         return data_term + config.pde_weight * normalized.pow(2).sum(-1).mean()
 
-    minimize(
-        loss, encoder.parameters(), config.encoder_steps, description=f"{system.name}: encoder T"
+    minimize(  # each step draws `batch` data pairs and `batch` collocation points
+        loss,
+        encoder.parameters(),
+        config.encoder_steps,
+        2 * config.batch,
+        description=f"{system.name}: encoder T",
     )
     return collocation
+
+
+def _train_phase1(
+    context: FitContext, config: Phase1Config, encoder: NormalizedMLP, decoder: NormalizedMLP
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Choose the latent rates, then train ``encoder`` and ``decoder`` in place.
+
+    Returns the rates and the validation score of each candidate range.
+    """
+    system = context.system
+    generator = torch.Generator().manual_seed(context.seed)
+    unforced = regimes.get("zero")()
+    boxes = training_boxes(context, config)
+    rates, selection = _select_rates(context, config, unforced, boxes, generator)
+    observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
+    data = observer_data(
+        context, observer, unforced, config.train_trajectories, "kkl/phase1", boxes
+    )
+    _train_encoder(context, config, encoder, data, rates, generator)
+    x, z = (_tensor(a) for a in data.scored())
+    decoder.set_normalization(z, x)
+    train_decoder(
+        decoder, z, x, config.decoder_steps, config.batch, generator, f"{system.name}: decoder T*"
+    )
+    return rates, selection
 
 
 def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel:
@@ -265,47 +296,28 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
     cache = CheckpointCache(context.cache_dir)
     with seeded(context.seed):
         encoder, decoder = _networks(system.n_x, system.n_z, config)
-    stored = cache.load("kkl-phase1", description)
-    if stored is not None:
-        encoder.load_state_dict(stored["encoder"])
-        decoder.load_state_dict(stored["decoder"])
-        rates = stored["rates"].numpy()
-        selection = dict(stored["selection"])
-    else:
-        generator = torch.Generator().manual_seed(context.seed)
-        unforced = regimes.get("zero")()
-        boxes = training_boxes(context, config)
-        rates, selection = _select_rates(context, config, unforced, boxes, generator)
-        observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
-        data = observer_data(
-            context, observer, unforced, config.train_trajectories, "kkl/phase1", boxes
-        )
-        _train_encoder(context, config, encoder, data, rates, generator)
-        x, z = (_tensor(a) for a in data.scored())
-        decoder.set_normalization(z, x)
-        train_decoder(
-            decoder,
-            z,
-            x,
-            config.decoder_steps,
-            config.batch,
-            generator,
-            f"{system.name}: decoder T*",
-        )
-        cache.save(
-            "kkl-phase1",
-            description,
-            {
+    with cache.claim("kkl-phase1", description):
+        stored = cache.load("kkl-phase1", description)
+        if stored is None:
+            with counting() as spending:
+                rates, selection = _train_phase1(context, config, encoder, decoder)
+            stored = {
                 "encoder": encoder.state_dict(),
                 "decoder": decoder.state_dict(),
                 "rates": torch.as_tensor(rates),
                 "selection": selection,
-            },
-        )
+                "spent": spending.as_dict(),
+            }
+            cache.save("kkl-phase1", description, stored)
+    encoder.load_state_dict(stored["encoder"])
+    decoder.load_state_dict(stored["decoder"])
+    rates = stored["rates"].numpy()
+    selection = dict(stored["selection"])
+    spent = dict(stored["spent"])
     for network in (encoder, decoder):
         network.requires_grad_(False)
     observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
-    model = AutonomousModel(rates, observer, encoder, decoder, selection, description)
+    model = AutonomousModel(rates, observer, encoder, decoder, selection, description, spent=spent)
     model.quality = map_quality(context, model)
     return model
 

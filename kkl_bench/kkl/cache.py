@@ -8,6 +8,10 @@ temporary name and renamed, so an interrupted save never leaves a partial
 checkpoint behind. Each checkpoint has a SHA-256 sidecar (``<key>.pt.sha256``)
 written after it; a checkpoint whose bytes do not match (truncated,
 corrupted, or missing its sidecar) is deleted and rebuilt, never loaded.
+
+Training a checkpoint is *claimed* (:meth:`CheckpointCache.claim`): a file
+lock beside it, so concurrent workers or runs sharing a cache train each
+model once; the others wait for it and load it.
 """
 
 from __future__ import annotations
@@ -17,10 +21,13 @@ import json
 import os
 import tempfile
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import torch
+from filelock import FileLock
 
 from kkl_bench.cache import checksum_path, sha256_of, write_atomically
 
@@ -39,6 +46,17 @@ class CheckpointCache:
 
     def path(self, kind: str, description: dict[str, Any]) -> Path:
         return self.root / kind / f"{cache_key(description)}.pt"
+
+    @contextmanager
+    def claim(self, kind: str, description: dict[str, Any]) -> Iterator[None]:
+        """Hold the lock of ``description``'s checkpoint: load, or train and save, inside.
+
+        Other processes claiming the same checkpoint wait until the block ends.
+        """
+        path = self.path(kind, description)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with FileLock(path.with_name(path.name + ".lock")):
+            yield
 
     def load(self, kind: str, description: dict[str, Any]) -> dict[str, Any] | None:
         """The stored checkpoint for ``description``, or None (also for a damaged one, which is removed)."""

@@ -6,16 +6,25 @@ from typing import Any
 
 from kkl_bench.estimator import Estimator
 
+NOTHING_SPENT = {"steps": 0, "samples": 0}
+
 
 class KKLEstimator(Estimator):
     """An estimator built on a Phase-1 model (``self.model_``), maybe with a Phase-2 log (``self.log_``).
 
     :meth:`fit_report` records the latent rates and how they were chosen, the
-    maps' quality on held-out states, and the Phase-2 training log.
+    maps' quality on held-out states, the Phase-2 training log, and
+    ``spent``: the optimizer steps and samples of Phase 1 (shared by every
+    KKL plugin of a system and seed) and of the plugin's own second phase.
     """
 
     def fit_report(self) -> dict[str, Any]:
         report = self.model_.report()
-        if getattr(self, "log_", None):
-            report["training_log"] = self.log_
+        log = getattr(self, "log_", None) or {}
+        if log:
+            report["training_log"] = log
+        report["spent"] = {
+            "phase1": self.model_.spent,
+            "phase2": log.get("spent", NOTHING_SPENT),
+        }
         return report

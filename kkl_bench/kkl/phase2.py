@@ -23,6 +23,7 @@ from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import ObserverData, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
+from kkl_bench.kkl.optimize import counting
 from kkl_bench.kkl.windows import sliding_windows
 from kkl_bench.protocol.metrics import steady_state_start
 
@@ -113,16 +114,20 @@ def load_or_train(
     """Load ``modules``' state from the cache, or call ``train()`` and store it.
 
     ``train()`` returns a dict of extra facts to store with the state (e.g. a
-    training log); it is returned either way.
+    training log); it is returned either way, with ``"spent"``: the optimizer
+    steps and samples ``train()`` took.
     """
     cache = CheckpointCache(context.cache_dir)
-    stored = cache.load(description["kind"], description)
-    if stored is not None:
-        modules.load_state_dict(stored["state"])
-        log = dict(stored["log"])
-    else:
-        log = train()
-        cache.save(description["kind"], description, {"state": modules.state_dict(), "log": log})
+    kind = description["kind"]
+    with cache.claim(kind, description):
+        stored = cache.load(kind, description)
+        if stored is None:
+            with counting() as spent:
+                log = train()
+            stored = {"state": modules.state_dict(), "log": {**log, "spent": spent.as_dict()}}
+            cache.save(kind, description, stored)
+    modules.load_state_dict(stored["state"])
+    log = dict(stored["log"])
     modules.requires_grad_(False)
     return log
 

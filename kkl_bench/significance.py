@@ -1,0 +1,86 @@
+"""Which entries of a leaderboard column are really best: a paired, hierarchical bootstrap.
+
+Every estimator of a column is scored on the same test trajectories, once
+per training seed, so its per-trajectory RMSE is an array
+``(n_seeds, n_trajectories)``. The *best* entry has the lowest mean RMSE.
+Another entry is *distinguishable* from it when the ratio of their mean
+RMSEs, ``other / best``, exceeds 1 with 95 % confidence (one-sided, 5 %):
+
+* each bootstrap resample draws the test trajectories with replacement,
+  the same draws for both estimators (the comparison is paired), and each
+  estimator's seeds with replacement (independently: the seeds of two
+  estimators are unrelated), so both the test-set noise and the spread over
+  training seeds enter the interval;
+* the ratio's 5 % quantile over the resamples must be above 1.
+
+The best entry is marked *best* only if it is distinguishable from every
+other entry; otherwise it and every entry not distinguishable from it are
+marked *tied*. Entries with a diverged trajectory (non-finite RMSE) are
+never best and never tied; a column with fewer than two finite entries has
+no marks. Resampling uses a fixed seed, so the marks are
+reproducible.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+N_RESAMPLES = 4000
+LEVEL = 0.05
+SEED = 20240601
+
+
+def resampled_means(
+    rmse: np.ndarray, trajectories: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    """Mean RMSE of each resample ``(n_resamples,)``.
+
+    ``rmse: (n_seeds, n_trajectories)``; ``trajectories: (n_resamples, n_trajectories)``
+    are the (shared) resampled trajectory indices; seeds are resampled here.
+    """
+    per_seed = rmse[:, trajectories].mean(axis=-1)  # (n_seeds, n_resamples)
+    n_seeds, n_resamples = per_seed.shape
+    seeds = rng.integers(n_seeds, size=(n_resamples, n_seeds))
+    return per_seed[seeds, np.arange(n_resamples)[:, None]].mean(axis=1)
+
+
+def ratio_lower_bound(
+    other: np.ndarray, best: np.ndarray, n_resamples: int = N_RESAMPLES, level: float = LEVEL
+) -> float:
+    """One-sided lower confidence bound of ``mean(other) / mean(best)`` (see the module).
+
+    ``other: (n_seeds_a, n)`` and ``best: (n_seeds_b, n)`` per-trajectory RMSE on the
+    same ``n`` test trajectories.
+    """
+    other, best = np.asarray(other, float), np.asarray(best, float)
+    if other.shape[1] != best.shape[1]:
+        raise ValueError(
+            f"paired comparison needs the same test trajectories: {other.shape[1]} vs {best.shape[1]}"
+        )
+    rng = np.random.default_rng(SEED)
+    trajectories = rng.integers(best.shape[1], size=(n_resamples, best.shape[1]))
+    ratios = resampled_means(other, trajectories, rng) / resampled_means(best, trajectories, rng)
+    return float(np.quantile(ratios, level))
+
+
+def mark_column(rmse: Mapping[str, np.ndarray]) -> dict[str, str]:
+    """``{"best"|"tied"|"": ...}`` for each entry of one column.
+
+    ``rmse`` maps an entry's name to its per-trajectory RMSE ``(n_seeds, n_trajectories)``.
+    """
+    finite = {name: np.asarray(v, float) for name, v in rmse.items() if np.isfinite(v).all()}
+    marks = dict.fromkeys(rmse, "")
+    if len(finite) < 2:
+        return marks
+    best = min(finite, key=lambda name: finite[name].mean())
+    tied = [
+        name
+        for name, values in finite.items()
+        if name != best and ratio_lower_bound(values, finite[best]) <= 1.0
+    ]
+    marks[best] = "tied" if tied else "best"
+    for name in tied:
+        marks[name] = "tied"
+    return marks

@@ -1,0 +1,84 @@
+"""Estimator variants: a registered estimator with non-default hyperparameters, named
+in the parametrized style of benchopt, ``static_hyperkkl[guard=True]``.
+
+A variant is a row of its own everywhere: ``run`` and ``check`` accept the
+name, results are stored under it, and the leaderboard shows it. Values are
+Python literals (``True``, ``0.5``, ``'covering'``). The canonical name lists
+the parameters in the order of the estimator's ``__init__``, so two spellings
+of one variant share their results.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+
+from kkl_bench.estimator import Estimator
+from kkl_bench.registry import estimators
+
+_NAME = re.compile(r"^(?P<base>[^\[\]]+)(\[(?P<params>.*)\])?$")
+
+
+class VariantError(ValueError):
+    """A variant name is malformed or names a hyperparameter the estimator does not have."""
+
+
+def parse(name: str) -> tuple[str, dict]:
+    """``"static_hyperkkl[guard=True]"`` -> ``("static_hyperkkl", {"guard": True})``.
+
+    The base name is looked up in the estimator registry (unknown names raise
+    its error listing the valid ones); parameters are checked against the
+    estimator's ``__init__``.
+    """
+    match = _NAME.match(name.strip())
+    if match is None:
+        raise VariantError(
+            f"malformed estimator name {name!r}; expected NAME or NAME[key=value,...]"
+        )
+    base = match["base"].strip()
+    cls = estimators.get(base)
+    params = {}
+    text = match["params"]
+    if text is not None and text.strip():
+        for item in text.split(","):
+            key, equals, value = (part.strip() for part in item.partition("="))
+            if not equals or not key:
+                raise VariantError(
+                    f"malformed parameter {item.strip()!r} in {name!r}; expected key=value"
+                )
+            try:
+                params[key] = ast.literal_eval(value)
+            except (ValueError, SyntaxError):
+                raise VariantError(
+                    f"value {value!r} of {key!r} in {name!r} is not a Python literal "
+                    "(write True, 0.5, 'text')"
+                ) from None
+    valid = cls.param_names()
+    unknown = [key for key in params if key not in valid]
+    if unknown:
+        raise VariantError(
+            f"{base} has no hyperparameter {', '.join(map(repr, unknown))}; "
+            f"valid: {', '.join(valid) or 'none'}"
+        )
+    return base, params
+
+
+def canonical(name: str) -> str:
+    """The canonical spelling of ``name``: parameters in ``__init__`` order, none if empty."""
+    base, params = parse(name)
+    order = estimators.get(base).param_names()
+    if not params:
+        return base
+    items = ",".join(f"{key}={params[key]!r}" for key in order if key in params)
+    return f"{base}[{items}]"
+
+
+def build(name: str) -> Estimator:
+    """An unfitted estimator for ``name`` (a registered name or a variant of one)."""
+    base, params = parse(name)
+    return estimators.get(base)(**params)
+
+
+def base_name(name: str) -> str:
+    """The registered estimator a (variant) name refers to."""
+    return parse(name)[0]
