@@ -28,6 +28,8 @@ examples:
   kkl-bench run --estimator dynamic_hyperkkl 'static_hyperkkl[guard=True]' --seed 0 1 2
   kkl-bench leaderboard --with-paper
   kkl-bench leaderboard --format latex > table.tex
+  kkl-bench publish --results leaderboard/results --out leaderboard
+  kkl-bench plot --results results --out figures
   kkl-bench run --estimator all --profile standard --jobs 2
   kkl-bench run --estimator ekf --executor dask --scheduler tcp://scheduler:8786
   kkl-bench cache info
@@ -158,6 +160,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="append fit time, estimation cost and NRMSE per estimator and system (markdown)",
     )
 
+    publish = commands.add_parser(
+        "publish",
+        help="write a leaderboard folder (README, LaTeX, CSV, figures, index.html) from results",
+        description="Write the leaderboard folder from stored results alone: README.md with "
+        "the tables, LaTeX, CSV, figures (needs matplotlib: pip install 'kkl-bench[plot]') "
+        "and a static index.html. The same results give byte-identical files.",
+    )
+    _add_results_argument(publish)
+    publish.add_argument(
+        "--profile", default="standard", help="profile to publish (default standard)"
+    )
+    publish.add_argument(
+        "--out",
+        type=Path,
+        default=Path("leaderboard"),
+        metavar="DIR",
+        help="(default ./leaderboard)",
+    )
+
+    plot = commands.add_parser(
+        "plot",
+        help="draw the figures from stored results (PNG and SVG)",
+        description="Per (system, regime) the states and error norm on test trajectory 0, "
+        "a heat map of RMSE relative to the UKF, and cost against RMSE. "
+        "Needs matplotlib: pip install 'kkl-bench[plot]'.",
+    )
+    _add_results_argument(plot)
+    plot.add_argument("--profile", default="standard", help="profile to draw (default standard)")
+    plot.add_argument(
+        "--out", type=Path, default=Path("."), metavar="DIR", help="figures go to DIR/figures/"
+    )
+
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")
     cache.add_argument("action", choices=("info", "clear"))
     _add_cache_argument(cache)
@@ -236,6 +270,26 @@ def _leaderboard(args: argparse.Namespace) -> int:
     return 0
 
 
+def _publish(args: argparse.Namespace) -> int:
+    from kkl_bench.publish import publish
+
+    written = publish(args.results, args.out, args.profile)
+    print(f"wrote {len(written)} files to {args.out}/")
+    return 0
+
+
+def _plot(args: argparse.Namespace) -> int:
+    from kkl_bench.publish import draw_figures
+
+    results = load_results(args.results)
+    if results.empty or args.profile not in set(results["profile"]):
+        raise ValueError(f"no results for profile {args.profile!r} under {args.results}/")
+    summary = leaderboard.summary_table(results[results["profile"] == args.profile])
+    names = draw_figures(summary, args.results, args.profile, args.out)
+    print(f"wrote {2 * len(names)} figures to {args.out / 'figures'}/")
+    return 0
+
+
 def _cache(args: argparse.Namespace) -> int:
     root = args.cache or default_cache_dir()
     if args.action == "clear":
@@ -271,11 +325,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         "run": lambda: _run(args),
         "leaderboard": lambda: _leaderboard(args),
         "cache": lambda: _cache(args),
+        "publish": lambda: _publish(args),
+        "plot": lambda: _plot(args),
         "check": lambda: _check(args),
     }
     try:
         return commands[args.command]()
-    except (UnknownNameError, PluginLoadError, ProfileError, ValueError, OSError) as error:
+    except (
+        UnknownNameError,
+        PluginLoadError,
+        ProfileError,
+        ValueError,
+        OSError,
+        ImportError,
+    ) as error:
         print(f"kkl-bench: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

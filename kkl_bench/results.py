@@ -248,3 +248,17 @@ def _from_json(value: Any) -> Any:
     if isinstance(value, list):
         return [_from_json(item) for item in value]
     return value
+
+
+def kept_estimates(results_dir: Path, profile: str) -> dict[tuple[str, str, str], KeptEstimate]:
+    """``(estimator, system, regime) -> KeptEstimate`` of the lowest seed that kept one."""
+    kept = {}
+    for path in sorted(Path(results_dir, profile).glob("*/*/*.json")):
+        regime, _, seed = path.stem.rpartition("-seed")
+        key = (path.parent.parent.name, path.parent.name, regime)
+        if key in kept and kept[key][0] <= int(seed):
+            continue
+        estimate = read_estimate(path)
+        if estimate is not None:
+            kept[key] = (int(seed), estimate)
+    return {key: estimate for key, (_, estimate) in kept.items()}

@@ -1,0 +1,204 @@
+"""Figures drawn from stored results alone (matplotlib, the optional ``plot`` extra).
+
+* :func:`trajectory_figure`: per (system, regime), each state's truth and
+  every estimator's estimate over time on test trajectory 0 (the paper's
+  appendix figure), and below them the estimation-error norm on a log scale;
+* :func:`relative_rmse_heatmap`: each estimator's RMSE over the UKF's, per cell;
+* :func:`cost_accuracy_figure`: estimation cost against RMSE, one panel per system.
+
+Every figure is saved as PNG (for Markdown) and SVG (for the page) by
+:func:`save`, with fixed metadata so that the same results give the same bytes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from kkl_bench.leaderboard import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES
+from kkl_bench.results import KeptEstimate
+
+REFERENCE = "ukf"
+"""The estimator the heat map divides by."""
+
+
+def pyplot():
+    """matplotlib's pyplot on the non-interactive Agg backend, with reproducible output."""
+    try:
+        import matplotlib
+    except ImportError:
+        raise ImportError(
+            "figures need matplotlib: pip install 'kkl-bench[plot]' (or pip install matplotlib)"
+        ) from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.rcParams.update({"svg.hashsalt": "kkl-bench", "font.size": 9, "axes.titlesize": 10})
+    return plt
+
+
+def _colors(names: Sequence[str]) -> dict[str, tuple]:
+    """One stable colour per estimator (tab10, then tab20)."""
+    plt = pyplot()
+    palette = list(plt.get_cmap("tab10").colors) + list(plt.get_cmap("tab20").colors[1::2])
+    return {name: palette[i % len(palette)] for i, name in enumerate(sorted(names))}
+
+
+def trajectory_figure(title: str, kept: Mapping[str, KeptEstimate]):
+    """States and error norm over time on one test trajectory for every estimator in ``kept``.
+
+    ``kept`` maps estimator names to their kept estimate of the same test
+    trajectory (same truth).
+    """
+    plt = pyplot()
+    names = sorted(kept)
+    truth = kept[names[0]]
+    n_x = truth.x.shape[1]
+    colors = _colors(names)
+    figure, axes = plt.subplots(
+        n_x + 1, 1, figsize=(9, 1.9 * (n_x + 1)), sharex=True, constrained_layout=True
+    )
+    dense = {
+        "rasterized": True
+    }  # 1000-sample lines: pixels inside the SVG, axes and text stay vector
+    for state, axis in enumerate(axes[:n_x]):
+        axis.plot(truth.t, truth.x[:, state], color="black", linewidth=2.2, label="truth", **dense)
+        for name in names:
+            axis.plot(
+                truth.t,
+                kept[name].x_hat[:, state],
+                color=colors[name],
+                linewidth=0.9,
+                label=name,
+                **dense,
+            )
+        axis.set_ylabel(f"$x_{state + 1}$")
+        low, high = np.min(truth.x[:, state]), np.max(truth.x[:, state])
+        margin = 0.5 * (high - low) + 1e-6
+        axis.set_ylim(low - margin, high + margin)  # an estimate far off does not hide the rest
+    error_axis = axes[n_x]
+    for name in names:
+        error = np.linalg.norm(kept[name].x_hat - kept[name].x, axis=1)
+        error_axis.semilogy(
+            truth.t, np.where(error > 0, error, np.nan), color=colors[name], linewidth=0.9, **dense
+        )
+    error_axis.set_ylabel(r"$\|\hat{x} - x\|$")
+    error_axis.set_xlabel("time (s)")
+    for axis in axes:
+        axis.grid(alpha=0.3)
+    axes[0].set_title(f"{title}: test trajectory 0")
+    figure.legend(
+        *axes[0].get_legend_handles_labels(), loc="outside right upper", fontsize=8, frameon=False
+    )
+    return figure
+
+
+def relative_rmse_heatmap(summary: pd.DataFrame):
+    """Heat map of each estimator's mean RMSE over the UKF's per cell (log colour scale)."""
+    plt = pyplot()
+    from matplotlib.colors import LogNorm
+
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    cells = [
+        (s, r)
+        for s in SYSTEM_TITLES
+        for r in REGIME_TITLES
+        if ((ours.system == s) & (ours.regime == r)).any()
+    ]
+    table = ours.set_index(["estimator", "system", "regime"])["rmse_mean"]
+    names = sorted(set(ours["estimator"]))
+    ratios = np.full((len(names), len(cells)), np.nan)
+    for i, name in enumerate(names):
+        for j, (system, regime) in enumerate(cells):
+            if (name, system, regime) in table.index and (REFERENCE, system, regime) in table.index:
+                ratios[i, j] = table[name, system, regime] / table[REFERENCE, system, regime]
+    finite = ratios[np.isfinite(ratios)]
+    figure, axis = plt.subplots(
+        figsize=(1.0 + 0.62 * len(cells), 1.0 + 0.42 * len(names)), constrained_layout=True
+    )
+    norm = (
+        LogNorm(vmin=max(finite.min(), 0.5), vmax=max(finite.max(), 2.0)) if finite.size else None
+    )
+    image = axis.imshow(
+        np.where(np.isfinite(ratios), ratios, np.nan), cmap="RdYlGn_r", norm=norm, aspect="auto"
+    )
+    for i in range(len(names)):
+        for j in range(len(cells)):
+            value = ratios[i, j]
+            text = "-" if np.isnan(value) else ("div." if math.isinf(value) else f"{value:.2g}")
+            axis.text(j, i, text, ha="center", va="center", fontsize=7)
+    axis.set_xticks(
+        range(len(cells)),
+        [f"{SYSTEM_TITLES[s]} {REGIME_TITLES[r]}" for s, r in cells],
+        rotation=60,
+        ha="right",
+    )
+    axis.set_yticks(range(len(names)), names)
+    axis.set_title(f"RMSE relative to the {REFERENCE.upper()} (mean over seeds; 1 = as good)")
+    figure.colorbar(image, ax=axis, label=f"RMSE / RMSE of {REFERENCE}")
+    return figure
+
+
+def cost_accuracy_figure(summary: pd.DataFrame):
+    """Estimation cost (µs per trajectory-step) against mean RMSE over regimes, per system."""
+    plt = pyplot()
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    systems = [s for s in SYSTEM_TITLES if s in set(ours["system"])]
+    names = sorted(set(ours["estimator"]))
+    colors = _colors(names)
+    markers = "osD^vP*Xh<>"
+    figure, axes = plt.subplots(
+        1,
+        len(systems),
+        figsize=(3.2 * len(systems) + 2.4, 3.4),
+        constrained_layout=True,
+        squeeze=False,
+    )
+    for axis, system in zip(axes[0], systems, strict=True):
+        rows = (
+            ours[ours["system"] == system]
+            .groupby("estimator")[["estimate_us_per_step", "rmse_mean"]]
+            .mean()
+        )
+        for i, name in enumerate(names):
+            if name in rows.index and np.isfinite(rows.loc[name]).all():
+                axis.loglog(
+                    *rows.loc[name],
+                    linestyle="none",
+                    marker=markers[i % len(markers)],
+                    color=colors[name],
+                    label=name,
+                )
+        axis.set_title(SYSTEM_TITLES[system])
+        axis.set_xlabel("estimation cost (µs / trajectory-step)")
+        axis.grid(alpha=0.3, which="both")
+    axes[0][0].set_ylabel("RMSE (mean over regimes and seeds)")
+    handles = {
+        label: handle
+        for axis in axes[0]
+        for handle, label in zip(*axis.get_legend_handles_labels(), strict=True)
+    }
+    figure.legend(
+        handles.values(), handles.keys(), loc="outside right upper", fontsize=8, frameon=False
+    )
+    return figure
+
+
+def save(figure, path_without_suffix: Path) -> list[Path]:
+    """Write ``figure`` as PNG and SVG (reproducible bytes); returns both paths."""
+    plt = pyplot()
+    path_without_suffix.parent.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for suffix, metadata in (
+        (".png", {"Software": None}),
+        (".svg", {"Date": None, "Creator": None}),
+    ):
+        path = path_without_suffix.with_suffix(suffix)
+        figure.savefig(path, dpi=110, metadata=metadata)
+        paths.append(path)
+    plt.close(figure)
+    return paths

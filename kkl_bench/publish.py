@@ -1,0 +1,393 @@
+"""``kkl-bench publish``: the whole ``leaderboard/`` folder from stored results alone.
+
+Writes, for one profile:
+
+* ``README.md``: how to read the tables (spread, marks, seeds), the
+  leaderboard in the paper's layout with the paper's rows, our RMSE over the
+  paper's, the cost and budget table, the figures, provenance (protocol and
+  package versions, commits) and the commands that made it;
+* ``<profile>.tex`` (booktabs) and ``<profile>.csv`` (tidy numbers);
+* ``figures/``: PNG (for the Markdown) and SVG (for the page);
+* ``index.html``: a static, self-contained page (no server, no network):
+  tables sortable by any column and filterable by system and regime, the
+  figures, provenance and the commands.
+
+Nothing is timed or dated here, so the same results give byte-identical files.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+from collections.abc import Iterable
+from pathlib import Path
+
+import pandas as pd
+
+from kkl_bench import figures
+from kkl_bench.leaderboard import (
+    COST_COLUMNS,
+    PAPER_PREFIX,
+    REGIME_TITLES,
+    SYSTEM_TITLES,
+    cost_frame,
+    cost_table,
+    paper_comparison,
+    render,
+    summary_table,
+)
+from kkl_bench.results import kept_estimates, load_results
+
+RESULTS_LINK = "results"
+"""Where the published folder keeps its raw results (relative to it)."""
+
+
+def reproduce_commands(profile: str, estimators: Iterable[str], seeds: Iterable[int]) -> str:
+    """The shell commands that make this folder, with relative paths only."""
+    names = " ".join(f"'{name}'" if "[" in name else name for name in estimators)
+    seed_list = " ".join(map(str, seeds))
+    return (
+        f"kkl-bench run --estimator {names} \\\n"
+        f"    --profile {profile} --seed {seed_list} --jobs 2 --results leaderboard/results\n"
+        f"kkl-bench publish --results leaderboard/results --profile {profile} --out leaderboard"
+    )
+
+
+def _provenance(results: pd.DataFrame) -> dict[str, list[str]]:
+    """Distinct protocol, package versions, commits and Pythons in the results."""
+    facts: dict[str, set[str]] = {"protocol": set(results["protocol"])}
+    for record in results["provenance"]:
+        for package, version in record.get("versions", {}).items():
+            facts.setdefault(package, set()).add(version)
+        facts.setdefault("git commit", set()).add(str(record.get("git_commit")))
+        facts.setdefault("python", set()).add(str(record.get("python")))
+    return {key: sorted(values) for key, values in facts.items()}
+
+
+def _reading_guide(summary: pd.DataFrame) -> str:
+    single = sorted(set(summary.loc[summary["n_seeds"] == 1, "estimator"]))
+    seeds = int(summary["n_seeds"].max())
+    return f"""Each cell reads `RMSE ± std (SMAPE %)`: for every training seed, the mean
+over the test trajectories of the steady-state RMSE; then the mean of those
+over the seeds, `±` their standard deviation over the seeds (sample standard
+deviation), and the mean SMAPE in parentheses. The `Seeds` column says how
+many seeds each row ran (up to {seeds}); the test trajectories are the same
+for every seed and estimator. Estimators that do not depend on the seed
+({", ".join(f"`{n}`" for n in single) or "none"}) were run once and show no spread.
+
+**Bold** marks the lowest RMSE of a column only where it beats every other
+entry by a paired hierarchical bootstrap: 4000 resamples that draw the test
+trajectories with replacement (the same draws for both estimators) and each
+estimator's seeds with replacement; the best entry is bold when the 5 %
+quantile of `RMSE(other) / RMSE(best)` is above 1 against every other entry.
+Otherwise the lowest entry and every entry not distinguishable from it in that
+way are in *italics* (tied). Entries with a diverged trajectory are never
+marked. The paper's rows (`paper:`) are its published numbers on its own test
+sets, shown for reference and never marked. `kkl_bench/significance.py` has
+the exact procedure."""
+
+
+def _markdown(
+    summary: pd.DataFrame, results: pd.DataFrame, profile: str, figure_names: list[str]
+) -> str:
+    estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
+    seeds = sorted(set(results["seed"]))
+    protocol = ", ".join(sorted(set(results["protocol"])))
+    provenance = "\n".join(
+        f"| {key} | {', '.join(values)} |" for key, values in _provenance(results).items()
+    )
+    cells = "\n".join(
+        f"![{name}](figures/{name}.png)" for name in figure_names if name.startswith("trajectory-")
+    )
+    return f"""# Leaderboard: profile `{profile}`, protocol {protocol}
+
+Written by `kkl-bench publish` from the results in [`{RESULTS_LINK}/`]({RESULTS_LINK}/)
+alone; every number here is in those files. [`index.html`](index.html) is the
+same leaderboard as a page (sortable, filterable; open it from disk).
+
+## How to read it
+
+{_reading_guide(summary)}
+
+## RMSE (SMAPE %) per system and input regime
+
+{render(summary, "markdown")}
+## Our RMSE over the paper's
+
+Each of the paper's four methods against our row of the same name (`static_hyperkkl`
+is the paper's observer, gain 1; our guarded variant is `static_hyperkkl[guard=True]`).
+Below 1: ours is lower. The paper's numbers come from its own test sets.
+
+{paper_comparison(summary)}
+
+## Relative to the UKF
+
+![RMSE relative to the UKF](figures/relative-rmse.png)
+
+## Cost, training budget and map quality
+
+Means over regimes and seeds. Phase 1 (rate selection, encoder `T`, decoder
+`T*`) is trained once per system and seed and shared by every KKL row; its
+steps and samples are counted in every KKL row but spent once. The second
+phase is the estimator's own training (hypernetwork, injection network,
+curriculum or decoder adaptation). A *sample* is one example a loss
+evaluates (a state-latent pair, a PDE collocation point, an input window
+with its state). Fit times are wall times of each fit on a 2-core machine
+running two jobs at once; Phase 1 counts in the fit time of the first KKL
+estimator that trained it.
+
+{cost_table(summary)}
+
+![Estimation cost against RMSE](figures/cost-accuracy.png)
+
+## Test trajectory 0 of every cell
+
+Each state's truth (black) and every estimator's estimate (first seed), and
+below them the estimation-error norm on a log scale.
+
+{cells}
+
+## Provenance
+
+| what | value |
+|---|---|
+| seeds | {", ".join(map(str, seeds))} |
+{provenance}
+
+## Reproduce
+
+```bash
+{reproduce_commands(profile, estimators, seeds)}
+```
+"""
+
+
+_PAGE_STYLE = """
+body { font-family: system-ui, sans-serif; margin: 1.5rem auto; max-width: 1200px; color: #222; }
+table { border-collapse: collapse; font-size: 0.85rem; margin: 0.5rem 0 1.5rem; }
+th, td { border-bottom: 1px solid #ddd; padding: 0.25rem 0.5rem; text-align: right; }
+th { background: #f4f4f4; cursor: pointer; user-select: none; position: sticky; top: 0; }
+th.sorted-asc::after { content: " \\25B2"; } th.sorted-desc::after { content: " \\25BC"; }
+td.text, th.text { text-align: left; }
+td.best { font-weight: bold; } td.tied { font-style: italic; }
+.controls label { margin-right: 1rem; } img { max-width: 100%; }
+pre { background: #f4f4f4; padding: 0.6rem; overflow-x: auto; }
+"""
+
+_PAGE_SCRIPT = """
+function sortTable(header) {
+  const table = header.closest("table");
+  const body = table.tBodies[0];
+  const index = Array.from(header.parentNode.children).indexOf(header);
+  const ascending = !header.classList.contains("sorted-asc");
+  table.querySelectorAll("th").forEach(th => th.classList.remove("sorted-asc", "sorted-desc"));
+  header.classList.add(ascending ? "sorted-asc" : "sorted-desc");
+  const key = row => {
+    const cell = row.children[index];
+    const value = cell.dataset.value !== undefined ? cell.dataset.value : cell.textContent;
+    const number = parseFloat(value);
+    return isNaN(number) ? value : number;
+  };
+  const rows = Array.from(body.rows);
+  rows.sort((a, b) => {
+    const x = key(a), y = key(b);
+    if (typeof x === "number" && typeof y === "number") return ascending ? x - y : y - x;
+    return ascending ? String(x).localeCompare(String(y)) : String(y).localeCompare(String(x));
+  });
+  rows.forEach(row => body.appendChild(row));
+}
+function applyFilters() {
+  const system = document.getElementById("filter-system").value;
+  const regime = document.getElementById("filter-regime").value;
+  document.querySelectorAll("tr[data-system]").forEach(row => {
+    const show = (!system || row.dataset.system === system) &&
+                 (!regime || !row.dataset.regime || row.dataset.regime === regime);
+    row.hidden = !show;
+  });
+  document.querySelectorAll("figure[data-system]").forEach(figure => {
+    figure.hidden = (system && figure.dataset.system !== system) ||
+                    (regime && figure.dataset.regime !== regime);
+  });
+}
+document.addEventListener("DOMContentLoaded", () => {
+  document.querySelectorAll("table.sortable th").forEach(th =>
+    th.addEventListener("click", () => sortTable(th)));
+  document.getElementById("filter-system").addEventListener("change", applyFilters);
+  document.getElementById("filter-regime").addEventListener("change", applyFilters);
+});
+"""
+
+
+def _number(value) -> str:
+    """A ``data-value`` attribute for sorting: numbers as they are, missing as +inf."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "Infinity"
+    return repr(float(value))
+
+
+def _html_table(
+    frame: pd.DataFrame, columns: dict[str, str], table_id: str, mark: pd.Series | None = None
+) -> str:
+    """A sortable table; rows carry ``data-system`` / ``data-regime`` for the filters."""
+    head = "".join(
+        f'<th class="{"text" if frame[c].dtype == object else "num"}">{html.escape(t)}</th>'
+        for c, t in columns.items()
+    )
+    rows = []
+    for index, row in frame.iterrows():
+        attributes = "".join(
+            f' data-{key}="{html.escape(str(row[key]))}"'
+            for key in ("system", "regime")
+            if key in frame
+        )
+        cells = []
+        for column in columns:
+            value = row[column]
+            css = "text" if frame[column].dtype == object else "num"
+            if column == "rmse_mean" and mark is not None and mark[index]:
+                css += f" {mark[index]}"
+            if isinstance(value, float | int) and not isinstance(value, bool):
+                text = "" if isinstance(value, float) and math.isnan(value) else f"{value:.4g}"
+                cells.append(f'<td class="{css}" data-value="{_number(value)}">{text}</td>')
+            else:
+                cells.append(f'<td class="{css}">{html.escape(str(value))}</td>')
+        rows.append(f"<tr{attributes}>{''.join(cells)}</tr>")
+    return (
+        f'<table class="sortable" id="{table_id}"><thead><tr>{head}</tr></thead>'
+        f"<tbody>\n{chr(10).join(rows)}\n</tbody></table>"
+    )
+
+
+def _page(
+    summary: pd.DataFrame, results: pd.DataFrame, profile: str, figure_names: list[str]
+) -> str:
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)].copy()
+    reference = ours[ours["estimator"] == figures.REFERENCE].set_index(["system", "regime"])[
+        "rmse_mean"
+    ]
+    ours["relative"] = [
+        row.rmse_mean / reference.get((row.system, row.regime), math.nan)
+        for row in ours.itertuples()
+    ]
+    results_columns = {
+        "estimator": "Estimator",
+        "system": "System",
+        "regime": "Regime",
+        "n_seeds": "Seeds",
+        "rmse_mean": "RMSE",
+        "rmse_seed_std": "± std over seeds",
+        "smape_mean": "SMAPE %",
+        "n_diverged": "Diverged",
+        "relative": "RMSE / UKF",
+        "estimate_us_per_step": "µs / trajectory-step",
+        "mark": "Mark",
+    }
+    paper = summary[summary["estimator"].str.startswith(PAPER_PREFIX)]
+    paper_columns = {
+        "estimator": "Method",
+        "system": "System",
+        "regime": "Regime",
+        "rmse_mean": "RMSE",
+        "smape_mean": "SMAPE %",
+    }
+    costs = cost_frame(summary)
+    options = "".join(
+        f'<option value="{k}">{html.escape(v)}</option>'
+        for k, v in SYSTEM_TITLES.items()
+        if k in set(ours["system"])
+    )
+    regime_options = "".join(
+        f'<option value="{k}">{html.escape(v)}</option>'
+        for k, v in REGIME_TITLES.items()
+        if k in set(ours["regime"])
+    )
+    trajectory_figures = "\n".join(
+        f'<figure data-system="{name.split("-")[1]}" data-regime="{name.split("-")[2]}">'
+        f'<img src="figures/{name}.svg" alt="{name}"></figure>'
+        for name in figure_names
+        if name.startswith("trajectory-")
+    )
+    provenance = "".join(
+        f"<tr><td class='text'>{html.escape(k)}</td><td class='text'>{html.escape(', '.join(v))}</td></tr>"
+        for k, v in _provenance(results).items()
+    )
+    estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
+    commands = reproduce_commands(profile, estimators, sorted(set(results["seed"])))
+    guide = html.escape(_reading_guide(summary)).replace("\n\n", "</p><p>")
+    return f"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>kkl-bench leaderboard ({html.escape(profile)})</title>
+<style>{_PAGE_STYLE}</style>
+<script>{_PAGE_SCRIPT}</script>
+</head>
+<body>
+<h1>kkl-bench leaderboard: profile <code>{html.escape(profile)}</code></h1>
+<p>{guide}</p>
+<p>Click a column header to sort; choose a system or a regime to filter.</p>
+<div class="controls">
+<label>System <select id="filter-system"><option value="">all</option>{options}</select></label>
+<label>Regime <select id="filter-regime"><option value="">all</option>{regime_options}</select></label>
+</div>
+<h2>Results</h2>
+{_html_table(ours, results_columns, "results", ours["mark"])}
+<h2>The paper's numbers</h2>
+{_html_table(paper, paper_columns, "paper")}
+<h2>Cost, training budget and map quality</h2>
+{_html_table(costs, {"estimator": "Estimator", "system": "System", **COST_COLUMNS}, "costs")}
+<h2>Figures</h2>
+<figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>
+<figure><img src="figures/cost-accuracy.svg" alt="estimation cost against RMSE"></figure>
+{trajectory_figures}
+<h2>Provenance</h2>
+<table><tbody>{provenance}</tbody></table>
+<h2>Reproduce</h2>
+<pre>{html.escape(commands)}</pre>
+</body>
+</html>
+"""
+
+
+def draw_figures(summary: pd.DataFrame, results_dir: Path, profile: str, out: Path) -> list[str]:
+    """Draw every figure into ``out/figures`` (PNG and SVG); returns their names."""
+    names = []
+    kept = kept_estimates(results_dir, profile)
+    directory = out / "figures"
+    figures.save(figures.relative_rmse_heatmap(summary), directory / "relative-rmse")
+    figures.save(figures.cost_accuracy_figure(summary), directory / "cost-accuracy")
+    names += ["relative-rmse", "cost-accuracy"]
+    for system in SYSTEM_TITLES:
+        for regime in REGIME_TITLES:
+            cell = {e: k for (e, s, r), k in kept.items() if (s, r) == (system, regime)}
+            if not cell:
+                continue
+            name = f"trajectory-{system}-{regime}"
+            title = f"{SYSTEM_TITLES[system]}, {regime} input"
+            figures.save(figures.trajectory_figure(title, cell), directory / name)
+            names.append(name)
+    return names
+
+
+def publish(results_dir: Path, out: Path, profile: str = "standard") -> list[Path]:
+    """Write the leaderboard folder for ``profile`` into ``out``; returns the files written."""
+    results = load_results(results_dir)
+    if results.empty:
+        raise ValueError(f"no results under {results_dir}/; run `kkl-bench run` first")
+    results = results[results["profile"] == profile]
+    if results.empty:
+        raise ValueError(f"no results for profile {profile!r} under {results_dir}/")
+    summary = summary_table(results, with_paper=True)
+    out.mkdir(parents=True, exist_ok=True)
+    figure_names = draw_figures(summary, results_dir, profile, out)
+    written = {
+        out / "README.md": _markdown(summary, results, profile, figure_names),
+        out / f"{profile}.tex": render(summary, "latex"),
+        out / f"{profile}.csv": render(
+            summary[~summary["estimator"].str.startswith(PAPER_PREFIX)], "csv"
+        ),
+        out / "index.html": _page(summary, results, profile, figure_names),
+    }
+    for path, text in written.items():
+        path.write_text(text)
+    return [*written, *sorted((out / "figures").iterdir())]

@@ -1,0 +1,182 @@
+"""`kkl-bench publish`: reproducible files, numbers that match the stored records, a page
+that works in a real browser."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kkl_bench.cli import main
+from kkl_bench.estimator import Estimator
+from kkl_bench.harness import RunSpec, run
+from kkl_bench.registry import estimators
+from kkl_bench.task import get_profile
+
+pytest.importorskip("matplotlib")
+
+
+class OffsetCentre(Estimator):
+    """The x0 box centre plus an offset that depends on the training seed (a fake learned row)."""
+
+    def __init__(self, scale: float = 0.1) -> None:
+        self.scale = scale
+
+    def estimate(self, t, y, u):
+        context = self.check_fitted()
+        centre = (context.x0_low + context.x0_high) / 2 + self.scale * (1 + context.seed)
+        return np.broadcast_to(centre, (len(y), len(t), context.system.n_x)).copy()
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    """Quick-profile cells of ekf (run once) and a seeded fake row and its variant, 2 seeds."""
+    directory = tmp_path_factory.mktemp("results")
+    saved = dict(estimators._loaded)
+    estimators.register("offset_centre")(OffsetCentre)
+    try:
+        spec = RunSpec(
+            ("ekf", "offset_centre", "offset_centre[scale=0.3]"),
+            ("duffing", "vdp"),
+            ("zero", "square"),
+            get_profile("quick"),
+            seeds=(0, 1),
+            results_dir=directory,
+        )
+        assert run(spec).ok
+    finally:
+        estimators._loaded = saved
+    return directory
+
+
+@pytest.fixture(scope="module")
+def published(results, tmp_path_factory):
+    out = tmp_path_factory.mktemp("leaderboard")
+    assert (
+        main(["publish", "--results", str(results), "--profile", "quick", "--out", str(out)]) == 0
+    )
+    return out
+
+
+def test_publishing_twice_gives_byte_identical_files(results, published, tmp_path):
+    assert (
+        main(["publish", "--results", str(results), "--profile", "quick", "--out", str(tmp_path)])
+        == 0
+    )
+    first = {p.relative_to(published): p.read_bytes() for p in published.rglob("*") if p.is_file()}
+    second = {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert set(first) == set(second) and len(first) > 10
+    assert [name for name in first if first[name] != second[name]] == []
+    assert {"README.md", "index.html", "quick.tex", "quick.csv"} <= {str(p) for p in first}
+
+
+def recorded(results: Path) -> dict[tuple[str, str, str], list[list[float]]]:
+    """Per-trajectory RMSE by seed, read straight from the JSON records."""
+    cells: dict[tuple[str, str, str], list[list[float]]] = {}
+    for path in sorted(results.glob("quick/*/*/*.json")):
+        record = json.loads(path.read_text())
+        key = (record["estimator"], record["system"], record["regime"])
+        cells.setdefault(key, []).append(record["rmse"])
+    return cells
+
+
+def test_every_number_in_the_markdown_tables_is_the_stored_result(results, published):
+    text = (published / "README.md").read_text()
+    titles = {"Duffing": "duffing", "Van der Pol": "vdp", "Rossler": "rossler", "Lorenz": "lorenz"}
+    regimes = {"Zero": "zero", "Const": "constant", "Sin": "sinusoid", "Sqr": "square"}
+    stored = recorded(results)
+    checked = 0
+    for table in re.findall(r"(\| Estimator +\| Seeds .*?)\n\n", text, flags=re.S):
+        lines = table.splitlines()
+        header = [cell.strip() for cell in lines[0].strip("|").split("|")]
+        for line in lines[2:]:
+            cells = [cell.strip() for cell in line.strip("|").split("|")]
+            estimator = cells[0]
+            if estimator.startswith("paper:"):
+                continue
+            for title, cell in zip(header[2:], cells[2:], strict=True):
+                system_title, _, regime_title = title.rpartition(" ")
+                key = (estimator, titles[system_title], regimes[regime_title])
+                if cell == "-":  # columns of the paper's rows only
+                    assert key not in stored
+                    continue
+                by_seed = stored[key]
+                means = [np.mean(values) for values in by_seed]
+                assert cells[1] == str(len(by_seed))
+                number = re.match(r"[*]*([0-9.e+-]+)[*]*(?: ± ([0-9.e+-]+))? \(", cell)
+                assert number, cell
+                assert float(number[1]) == pytest.approx(np.mean(means), rel=5e-3)
+                if len(means) > 1:
+                    assert float(number[2]) == pytest.approx(
+                        np.std(means, ddof=1), rel=5e-2, abs=1e-12
+                    )
+                else:
+                    assert number[2] is None
+                checked += 1
+    assert checked == 3 * 4  # three rows, two systems x two regimes
+
+
+def test_the_page_sorts_and_filters_in_a_real_browser(published, tmp_path):
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed")
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver_path = shutil.which("chromedriver")
+    if browser is None or driver_path is None:
+        pytest.skip("no browser: install Debian's chromium and chromium-driver packages")
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser
+    for flag in (
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--no-first-run",
+        f"--user-data-dir={tmp_path / 'profile'}",
+        "--window-size=1400,1000",
+    ):
+        options.add_argument(flag)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(
+        service=webdriver.ChromeService(executable_path=driver_path), options=options
+    )
+    try:
+        driver.get((published / "index.html").as_uri())
+        errors = [entry for entry in driver.get_log("browser") if entry["level"] == "SEVERE"]
+        assert errors == []
+
+        def column(name):
+            table = driver.find_element(By.ID, "results")
+            headers = [th.text for th in table.find_elements(By.CSS_SELECTOR, "thead th")]
+            index = headers.index(name)
+            return [
+                row.find_elements(By.TAG_NAME, "td")[index].get_attribute("data-value")
+                or row.find_elements(By.TAG_NAME, "td")[index].text
+                for row in table.find_elements(By.CSS_SELECTOR, "tbody tr")
+                if row.is_displayed()
+            ]
+
+        before = column("RMSE")
+        driver.find_element(By.XPATH, "//table[@id='results']//th[text()='RMSE']").click()
+        ascending = [float(v) for v in column("RMSE")]
+        assert ascending == sorted(ascending) and ascending != [float(v) for v in before]
+        driver.find_element(By.XPATH, "//table[@id='results']//th[text()='RMSE']").click()
+        assert [float(v) for v in column("RMSE")] == sorted(ascending, reverse=True)
+
+        everything = len(column("System"))
+        Select(driver.find_element(By.ID, "filter-system")).select_by_value("vdp")
+        assert set(column("System")) == {"vdp"} and len(column("System")) == everything // 2
+        Select(driver.find_element(By.ID, "filter-regime")).select_by_value("square")
+        assert set(column("Regime")) == {"square"} and len(column("Regime")) == everything // 4
+        driver.save_screenshot(str(tmp_path / "leaderboard-page.png"))
+        assert (tmp_path / "leaderboard-page.png").stat().st_size > 10_000
+    finally:
+        driver.quit()
