@@ -26,7 +26,7 @@ def test_run_then_leaderboard(tmp_path, capsys):
     assert main(["leaderboard", "--results", results, "--details"]) == 0
     table = capsys.readouterr().out
     assert "| Estimator   | System   |   Fit time (s) |" in table
-    assert "| Estimator   | Van der Pol Zero   | Van der Pol Sqr   |" in table
+    assert "| Estimator   | Seeds   | Van der Pol Zero   | Van der Pol Sqr   |" in table
     board, details = table.split("\n\n")
     assert board.count("| ekf ") == 1 and details.count("| ekf ") == 1
     assert main(["leaderboard", "--results", results, "--format", "latex", "--with-paper"]) == 0
@@ -44,7 +44,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
     assert main(["leaderboard", "--results", results, "--format", "csv"]) == 0
     rows = capsys.readouterr().out.strip().splitlines()[1:]
     assert len(rows) == 32
-    assert all(",ok,5,0," in row for row in rows)  # every cell scored, none diverged
+    assert all(",ok,1,5,0," in row for row in rows)  # every cell scored once, none diverged
 
 
 @pytest.mark.parametrize(
@@ -53,6 +53,18 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
         (
             ["run", "--estimator", "ekff"],
             "unknown estimator 'ekff'; valid estimators: autonomous_kkl, curriculum_kkl, dynamic_hyperkkl, ekf, injection_kkl, static_hyperkkl, ukf (did you mean 'ekf'?)",
+        ),
+        (
+            ["run", "--estimator", "static_hyperkkl[gaurd=True]"],
+            "static_hyperkkl has no hyperparameter 'gaurd'; valid: pde_weight, injection_hidden, guard",
+        ),
+        (
+            ["run", "--estimator", "static_hyperkkl[guard=yes]"],
+            "value 'yes' of 'guard' in 'static_hyperkkl[guard=yes]' is not a Python literal",
+        ),
+        (
+            ["run", "--estimator", "static_hyperkkl[guard]"],
+            "malformed parameter 'guard' in 'static_hyperkkl[guard]'; expected key=value",
         ),
         (
             ["run", "--estimator", "ekf", "--system", "duffin"],
@@ -105,3 +117,51 @@ def test_check_command_passes_for_a_builtin(capsys):
     assert main(["check", "ekf"]) == 0
     out = capsys.readouterr().out
     assert "PASS check_causal" in out and "FAIL" not in out
+
+
+def test_several_seeds_fit_learned_rows_per_seed_and_filters_once(tmp_path, capsys):
+    from kkl_bench.harness import RunSpec, plan
+    from kkl_bench.task import get_profile
+
+    spec = RunSpec(
+        ("ekf", "injection_kkl[adapt=False]", "autonomous_kkl"),
+        ("vdp",),
+        ("zero",),
+        get_profile("quick"),
+        seeds=(2, 0, 2),
+        results_dir=tmp_path,
+    )
+    assert spec.seeds == (2, 0) and spec.seeds_for("ekf") == (2,)
+    jobs, _ = plan(spec)
+    assert [(job.estimator, job.seed) for job in jobs] == [
+        ("ekf", 2),
+        ("injection_kkl[adapt=False]", 2),
+        ("injection_kkl[adapt=False]", 0),
+        ("autonomous_kkl", 2),
+        ("autonomous_kkl", 0),
+    ]
+    args = ["run", "--estimator", "ekf", "--system", "vdp", "--regime", "zero"]
+    assert main([*args, "--seed", "0", "1", "--results", str(tmp_path)]) == 0
+    assert "1 cells scored" in capsys.readouterr().out
+    assert [
+        p.name for p in (tmp_path / "quick" / "ekf" / "vdp").iterdir() if p.suffix == ".json"
+    ] == ["zero-seed0.json"]
+
+
+def test_variant_names_are_canonical_and_stored_under_their_own_name(tmp_path, capsys):
+    from kkl_bench.results import load_results
+
+    args = ["run", "--system", "vdp", "--regime", "zero", "--results", str(tmp_path)]
+    assert main([*args, "--estimator", "ukf", "ukf[ kappa = 1.0, alpha=0.3 ]"]) == 0
+    assert "2 cells scored" in capsys.readouterr().out
+    assert main([*args, "--estimator", "ukf[alpha=0.3,kappa=1.0]"]) == 0  # same variant: done
+    assert "0 cells scored, 1 already done" in capsys.readouterr().out
+    results = load_results(tmp_path).set_index("estimator")
+    assert sorted(results.index) == ["ukf", "ukf[alpha=0.3,kappa=1.0]"]
+    assert results.loc["ukf[alpha=0.3,kappa=1.0]", "estimator_params"] == {
+        "alpha": 0.3,
+        "beta": 2.0,
+        "kappa": 1.0,
+    }
+    assert main(["check", "ukf[alpha=0.3]", "--system", "vdp"]) == 0
+    assert "FAIL" not in capsys.readouterr().out
