@@ -83,6 +83,15 @@ def _add_cache_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_drawing_arguments(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
+    """``--results``, ``--profile`` and ``--out`` of the commands that draw from results."""
+    _add_results_argument(parser)
+    parser.add_argument("--profile", default="standard", help="profile to draw (default standard)")
+    parser.add_argument(
+        "--out", type=Path, default=out, metavar="DIR", help=f"{where} (default {out})"
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kkl-bench",
@@ -167,17 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
         "the tables, LaTeX, CSV, figures (needs matplotlib: pip install 'kkl-bench[plot]') "
         "and a static index.html. The same results give byte-identical files.",
     )
-    _add_results_argument(publish)
-    publish.add_argument(
-        "--profile", default="standard", help="profile to publish (default standard)"
-    )
-    publish.add_argument(
-        "--out",
-        type=Path,
-        default=Path("leaderboard"),
-        metavar="DIR",
-        help="(default ./leaderboard)",
-    )
+    _add_drawing_arguments(publish, Path("leaderboard"), "the folder to write")
 
     plot = commands.add_parser(
         "plot",
@@ -186,11 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
         "a heat map of RMSE relative to the UKF, and cost against RMSE. "
         "Needs matplotlib: pip install 'kkl-bench[plot]'.",
     )
-    _add_results_argument(plot)
-    plot.add_argument("--profile", default="standard", help="profile to draw (default standard)")
-    plot.add_argument(
-        "--out", type=Path, default=Path("."), metavar="DIR", help="figures go to DIR/figures/"
-    )
+    _add_drawing_arguments(plot, Path("."), "figures go to DIR/figures/")
 
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")
     cache.add_argument("action", choices=("info", "clear"))
