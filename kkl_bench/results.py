@@ -122,6 +122,7 @@ def _write_atomic(path: Path, write: Callable[[Any], Any]) -> None:
     """Call ``write(binary_file)`` on a temporary file, then rename it to ``path``."""
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(handle, 0o666 & ~_umask())  # mkstemp makes 0600; results are shared files
         with os.fdopen(handle, "wb") as file:
             write(file)
             file.flush()
@@ -130,6 +131,12 @@ def _write_atomic(path: Path, write: Callable[[Any], Any]) -> None:
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def check_writable(results_dir: Path) -> None:

@@ -1,14 +1,19 @@
 """Per-cell records: atomic round trip with inf, loading into pandas."""
 
 import math
+import os
 
+import numpy as np
 import pytest
 
 from kkl_bench.results import (
     CellResult,
+    KeptEstimate,
     cell_path,
+    estimate_path,
     load_results,
     read_cell,
+    read_estimate,
     trajectory_table,
     write_cell,
 )
@@ -57,3 +62,17 @@ def test_load_results_adds_summary_columns(tmp_path):
 
 def test_empty_directory_gives_an_empty_table(tmp_path):
     assert load_results(tmp_path).empty
+
+
+def test_records_and_kept_estimates_follow_the_umask(tmp_path):
+    t = np.arange(3) * 0.05
+    kept = KeptEstimate(t=t, x=np.ones((3, 2)), x_hat=np.zeros((3, 2)))
+    path = write_cell(tmp_path, make_cell(), kept)
+    mask = os.umask(0)
+    os.umask(mask)
+    for written in (path, estimate_path(path)):
+        assert written.stat().st_mode & 0o777 == 0o666 & ~mask
+    loaded = read_estimate(path)
+    np.testing.assert_array_equal(loaded.x_hat, kept.x_hat)
+    write_cell(tmp_path, make_cell())  # rescored without an estimate: no stale file is left
+    assert read_estimate(path) is None
