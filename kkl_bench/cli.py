@@ -29,6 +29,7 @@ examples:
   kkl-bench leaderboard --with-paper
   kkl-bench leaderboard --format latex > table.tex
   kkl-bench publish --results leaderboard/results --out leaderboard
+  kkl-bench compare dynamic_hyperkkl autonomous_kkl --results leaderboard/results
   kkl-bench plot --results results --out figures
   kkl-bench run --estimator all --profile standard --jobs 2
   kkl-bench run --estimator ekf --executor dask --scheduler tcp://scheduler:8786
@@ -169,6 +170,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="append fit time, estimation cost and NRMSE per estimator and system (markdown)",
     )
 
+    versus = commands.add_parser(
+        "compare",
+        help="compare two estimators cell by cell with a paired bootstrap",
+        description="Per cell: the ratio of A's mean RMSE to B's, its 90 %% interval from the "
+        "paired hierarchical bootstrap (test trajectories and seeds resampled) and the verdict "
+        "of one-sided tests at 5 %%.",
+    )
+    versus.add_argument("a", metavar="A", help="estimator (or variant) name")
+    versus.add_argument("b", metavar="B", help="estimator (or variant) name")
+    _add_results_argument(versus)
+    versus.add_argument("--profile", default="standard", help="profile (default standard)")
+
     publish = commands.add_parser(
         "publish",
         help="write a leaderboard folder (README, LaTeX, CSV, figures, index.html) from results",
@@ -265,6 +278,15 @@ def _leaderboard(args: argparse.Namespace) -> int:
     return 0
 
 
+def _compare(args: argparse.Namespace) -> int:
+    results = load_results(args.results)
+    if results.empty or args.profile not in set(results["profile"]):
+        raise ValueError(f"no results for profile {args.profile!r} under {args.results}/")
+    summary = leaderboard.summary_table(results[results["profile"] == args.profile])
+    print(leaderboard.comparison_table(summary, args.a, args.b))
+    return 0
+
+
 def _publish(args: argparse.Namespace) -> int:
     from kkl_bench.publish import publish
 
@@ -320,6 +342,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "run": lambda: _run(args),
         "leaderboard": lambda: _leaderboard(args),
         "cache": lambda: _cache(args),
+        "compare": lambda: _compare(args),
         "publish": lambda: _publish(args),
         "plot": lambda: _plot(args),
         "check": lambda: _check(args),

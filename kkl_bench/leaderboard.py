@@ -26,7 +26,7 @@ import pandas as pd
 from tabulate import tabulate
 
 from kkl_bench.results import mean_and_std
-from kkl_bench.significance import mark_column
+from kkl_bench.significance import compare, mark_column
 
 FORMATS = ("markdown", "latex", "csv")
 PAPER_PREFIX = "paper:"
@@ -334,3 +334,47 @@ def paper_comparison(summary: pd.DataFrame) -> str:
                 row.append(f"{ratio:.2g}x" if math.isfinite(ratio) else "diverged")
         rows.append(row)
     return tabulate(rows, headers=header, tablefmt="github", disable_numparse=True)
+
+
+def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
+    """Markdown table: per cell, ``a``'s RMSE over ``b``'s with its 90 % interval and verdict
+    (:func:`kkl_bench.significance.compare`; one-sided tests at 5 %)."""
+    indexed = summary.set_index(["estimator", "system", "regime"])
+    for name in (a, b):
+        if name not in set(summary["estimator"]):
+            raise ValueError(
+                f"no results for {name!r}; estimators in the results: "
+                f"{', '.join(sorted(set(summary['estimator'])))}"
+            )
+    rows = []
+    systems = _in_paper_order(summary["system"], SYSTEM_TITLES)
+    regimes = _in_paper_order(summary["regime"], REGIME_TITLES)
+    for system in systems:
+        for regime in regimes:
+            if (a, system, regime) not in indexed.index or (b, system, regime) not in indexed.index:
+                continue
+            first, second = indexed.loc[(a, system, regime)], indexed.loc[(b, system, regime)]
+            if first["status"] != "ok" or second["status"] != "ok":
+                continue
+            result = compare(
+                np.asarray(first["rmse_trajectories"]), np.asarray(second["rmse_trajectories"])
+            )
+            verdict = {"a lower": f"{a} lower", "b lower": f"{b} lower"}.get(
+                result["verdict"], result["verdict"]
+            )
+            rows.append(
+                [
+                    f"{SYSTEM_TITLES.get(system, system)} {REGIME_TITLES.get(regime, regime)}",
+                    f"{first['rmse_mean']:.3g}",
+                    f"{second['rmse_mean']:.3g}",
+                    f"{result['ratio']:.3g}",
+                    f"[{result['low']:.3g}, {result['high']:.3g}]",
+                    verdict,
+                ]
+            )
+    return tabulate(
+        rows,
+        headers=["Cell", f"RMSE {a}", f"RMSE {b}", "ratio", "90 % interval", "verdict (5 %)"],
+        tablefmt="github",
+        disable_numparse=True,
+    )

@@ -46,10 +46,10 @@ def resampled_means(
     return per_seed[seeds, np.arange(n_resamples)[:, None]].mean(axis=1)
 
 
-def ratio_lower_bound(
-    other: np.ndarray, best: np.ndarray, n_resamples: int = N_RESAMPLES, level: float = LEVEL
-) -> float:
-    """One-sided lower confidence bound of ``mean(other) / mean(best)`` (see the module).
+def resampled_ratios(
+    other: np.ndarray, best: np.ndarray, n_resamples: int = N_RESAMPLES
+) -> np.ndarray:
+    """``mean(other) / mean(best)`` over paired hierarchical resamples ``(n_resamples,)``.
 
     ``other: (n_seeds_a, n)`` and ``best: (n_seeds_b, n)`` per-trajectory RMSE on the
     same ``n`` test trajectories.
@@ -61,8 +61,40 @@ def ratio_lower_bound(
         )
     rng = np.random.default_rng(SEED)
     trajectories = rng.integers(best.shape[1], size=(n_resamples, best.shape[1]))
-    ratios = resampled_means(other, trajectories, rng) / resampled_means(best, trajectories, rng)
-    return float(np.quantile(ratios, level))
+    return resampled_means(other, trajectories, rng) / resampled_means(best, trajectories, rng)
+
+
+def ratio_lower_bound(
+    other: np.ndarray, best: np.ndarray, n_resamples: int = N_RESAMPLES, level: float = LEVEL
+) -> float:
+    """One-sided lower confidence bound (at ``level``) of ``mean(other) / mean(best)``."""
+    return float(np.quantile(resampled_ratios(other, best, n_resamples), level))
+
+
+def compare(a: np.ndarray, b: np.ndarray, level: float = LEVEL) -> dict[str, float | str]:
+    """``mean(a) / mean(b)`` with its two-sided ``1 - 2 level`` bootstrap interval and a verdict.
+
+    The verdict is ``"a lower"`` when the upper bound is below 1, ``"b lower"``
+    when the lower bound is above 1 (each a one-sided test at ``level``),
+    else ``"not distinguishable"``; ``"diverged"`` if either has a non-finite value.
+    """
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        return {
+            "ratio": float(a.mean() / b.mean()),
+            "low": np.nan,
+            "high": np.nan,
+            "verdict": "diverged",
+        }
+    ratios = resampled_ratios(a, b)
+    low, high = np.quantile(ratios, [level, 1 - level])
+    verdict = "a lower" if high < 1 else "b lower" if low > 1 else "not distinguishable"
+    return {
+        "ratio": float(a.mean() / b.mean()),
+        "low": float(low),
+        "high": float(high),
+        "verdict": verdict,
+    }
 
 
 def mark_column(rmse: Mapping[str, np.ndarray]) -> dict[str, str]:

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench.leaderboard import paper_results, render, summary_table
+from kkl_bench.leaderboard import comparison_table, paper_results, render, summary_table
 from kkl_bench.significance import mark_column, ratio_lower_bound
 
 
@@ -131,3 +131,23 @@ def test_seed_spread_alone_can_make_a_paired_win_a_tie():
     spread = np.stack([0.7 * trajectories, trajectories, 1.3 * trajectories])
     assert mark_column({"a": spread * 0.99, "b": worse}) == {"a": "tied", "b": "tied"}
     assert mark_column({"a": steady, "b": worse, "c": np.array([[np.inf] * 20])})["c"] == ""
+
+
+def test_comparison_gives_the_ratio_its_interval_and_a_verdict():
+    frame = results_frame(
+        (
+            ("low", [[0.1, 0.2, 0.3, 0.4]] * 2),
+            ("high", [[0.2, 0.4, 0.6, 0.8]] * 2),
+            ("same", [[0.1, 0.2, 0.3, 0.4], [0.1, 0.2, 0.3, 0.4]]),
+        )
+    )
+    summary = summary_table(frame)
+    text = comparison_table(summary, "low", "high")
+    assert (
+        "| Duffing Zero | 0.25       | 0.5         | 0.5     | [0.5, 0.5]      | low lower" in text
+    )
+    assert "not distinguishable" in comparison_table(summary, "low", "same")
+    with pytest.raises(
+        ValueError, match="no results for 'nobody'; estimators in the results: high, low, same"
+    ):
+        comparison_table(summary, "low", "nobody")
