@@ -11,13 +11,14 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import pandas as pd
 from tqdm import tqdm
 
 from kkl_bench import harness, leaderboard, variants
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.executors import EXECUTORS
 from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
-from kkl_bench.results import load_results
+from kkl_bench.results import DamagedCellError, load_results
 from kkl_bench.task import ProfileError, get_profile, load_profiles
 
 EXAMPLES = """\
@@ -84,10 +85,22 @@ def _add_cache_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_drawing_arguments(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
-    """``--results``, ``--profile`` and ``--out`` of the commands that draw from results."""
+def _add_reading_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--results``, ``--profile`` and ``--tolerate-damaged`` of the commands that read results."""
     _add_results_argument(parser)
-    parser.add_argument("--profile", default="standard", help="profile to draw (default standard)")
+    parser.add_argument(
+        "--profile", help="profile to read (default: standard if present, else the only one)"
+    )
+    parser.add_argument(
+        "--tolerate-damaged",
+        action="store_true",
+        help="exit 0 even if damaged cell files were left out (they are always named)",
+    )
+
+
+def _add_drawing_arguments(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
+    """The reading arguments and ``--out`` of the commands that draw from results."""
+    _add_reading_arguments(parser)
     parser.add_argument(
         "--out", type=Path, default=out, metavar="DIR", help=f"{where} (default {out})"
     )
@@ -155,10 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     board = commands.add_parser("leaderboard", help="print the leaderboard from stored results")
     board.add_argument("--format", choices=leaderboard.FORMATS, default="markdown")
-    _add_results_argument(board)
-    board.add_argument(
-        "--profile", help="profile to tabulate (default: standard if present, else the only one)"
-    )
+    _add_reading_arguments(board)
     board.add_argument(
         "--with-paper",
         action="store_true",
@@ -179,8 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     versus.add_argument("a", metavar="A", help="estimator (or variant) name")
     versus.add_argument("b", metavar="B", help="estimator (or variant) name")
-    _add_results_argument(versus)
-    versus.add_argument("--profile", default="standard", help="profile (default standard)")
+    _add_reading_arguments(versus)
 
     publish = commands.add_parser(
         "publish",
@@ -254,8 +263,15 @@ def _run(args: argparse.Namespace) -> int:
     return 0 if summary.ok else 1
 
 
-def _leaderboard(args: argparse.Namespace) -> int:
-    results = load_results(args.results)
+def _load(args: argparse.Namespace) -> tuple[pd.DataFrame, list[DamagedCellError]]:
+    """The results of the chosen profile and the damaged cell files left out (each warned of).
+
+    Without ``--profile``: ``standard`` if present, else the only profile.
+    """
+    damaged: list[DamagedCellError] = []
+    results = load_results(args.results, damaged)
+    for error in damaged:
+        print(f"kkl-bench: warning: left out {error}", file=sys.stderr)
     if results.empty:
         raise ValueError(f"no results under {args.results}/; run `kkl-bench run` first")
     profiles = sorted(set(results["profile"]))
@@ -269,42 +285,54 @@ def _leaderboard(args: argparse.Namespace) -> int:
             f"(profile {profile}; results also hold {', '.join(p for p in profiles if p != profile)})",
             file=sys.stderr,
         )
-    summary = leaderboard.summary_table(
-        results[results["profile"] == profile], with_paper=args.with_paper
-    )
+    args.profile = profile
+    return results[results["profile"] == profile], damaged
+
+
+def _status(args: argparse.Namespace, damaged: list[DamagedCellError]) -> int:
+    """1 if damaged cells were left out (unless tolerated), else 0."""
+    if damaged and not args.tolerate_damaged:
+        print(
+            f"kkl-bench: {len(damaged)} damaged cell file(s) left out; `kkl-bench run` with the "
+            "same arguments recomputes them (--tolerate-damaged exits 0)",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def _leaderboard(args: argparse.Namespace) -> int:
+    results, damaged = _load(args)
+    summary = leaderboard.summary_table(results, with_paper=args.with_paper)
     print(leaderboard.render(summary, args.format), end="")
     if args.details:
         print("\n" + leaderboard.cost_table(summary))
-    return 0
+    return _status(args, damaged)
 
 
 def _compare(args: argparse.Namespace) -> int:
-    results = load_results(args.results)
-    if results.empty or args.profile not in set(results["profile"]):
-        raise ValueError(f"no results for profile {args.profile!r} under {args.results}/")
-    summary = leaderboard.summary_table(results[results["profile"] == args.profile])
-    print(leaderboard.comparison_table(summary, args.a, args.b))
-    return 0
+    results, damaged = _load(args)
+    print(leaderboard.comparison_table(leaderboard.summary_table(results), args.a, args.b))
+    return _status(args, damaged)
 
 
 def _publish(args: argparse.Namespace) -> int:
     from kkl_bench.publish import publish
 
-    written = publish(args.results, args.out, args.profile)
+    results, damaged = _load(args)
+    written = publish(results, args.results, args.out)
     print(f"wrote {len(written)} files to {args.out}/")
-    return 0
+    return _status(args, damaged)
 
 
 def _plot(args: argparse.Namespace) -> int:
     from kkl_bench.publish import draw_figures
 
-    results = load_results(args.results)
-    if results.empty or args.profile not in set(results["profile"]):
-        raise ValueError(f"no results for profile {args.profile!r} under {args.results}/")
-    summary = leaderboard.summary_table(results[results["profile"] == args.profile])
+    results, damaged = _load(args)
+    summary = leaderboard.summary_table(results)
     names = draw_figures(summary, args.results, args.profile, args.out)
     print(f"wrote {2 * len(names)} figures to {args.out / 'figures'}/")
-    return 0
+    return _status(args, damaged)
 
 
 def _cache(args: argparse.Namespace) -> int:

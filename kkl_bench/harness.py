@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,9 +30,11 @@ from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, smape
 from kkl_bench.registry import estimators, regimes, systems
 from kkl_bench.results import (
     CellResult,
+    DamagedCellError,
     KeptEstimate,
     cell_path,
     check_writable,
+    move_aside,
     provenance,
     read_cell,
     write_cell,
@@ -236,10 +239,20 @@ def run_job(spec: RunSpec, job: Job) -> list[CellResult]:
 
 
 def _done(spec: RunSpec, estimator: str, system: str, regime: str, seed: int) -> CellResult | None:
+    """The finished cell on disk, or None if it is to be (re)computed.
+
+    A damaged cell file is moved aside (``<name>.corrupt``) with a warning
+    naming it and the reason, and the cell is recomputed.
+    """
     path = cell_path(spec.results_dir, estimator, system, regime, spec.profile.name, seed)
     if spec.force or not path.exists():
         return None
-    cell = read_cell(path)
+    try:
+        cell = read_cell(path)
+    except DamagedCellError as error:
+        aside = move_aside(path)
+        warnings.warn(f"{error}; moved to {aside.name}, recomputing the cell", stacklevel=2)
+        return None
     return cell if cell.status == "ok" else None
 
 

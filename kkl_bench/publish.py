@@ -36,7 +36,7 @@ from kkl_bench.leaderboard import (
     render,
     summary_table,
 )
-from kkl_bench.results import kept_estimates, load_results
+from kkl_bench.results import kept_estimates
 
 RESULTS_LINK = "results"
 """Where the published folder keeps its raw results (relative to it)."""
@@ -369,14 +369,16 @@ def draw_figures(summary: pd.DataFrame, results_dir: Path, profile: str, out: Pa
     return names
 
 
-def publish(results_dir: Path, out: Path, profile: str = "standard") -> list[Path]:
-    """Write the leaderboard folder for ``profile`` into ``out``; returns the files written."""
-    results = load_results(results_dir)
-    if results.empty:
-        raise ValueError(f"no results under {results_dir}/; run `kkl-bench run` first")
-    results = results[results["profile"] == profile]
-    if results.empty:
-        raise ValueError(f"no results for profile {profile!r} under {results_dir}/")
+def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
+    """Write the leaderboard folder of ``results`` (one profile's cells, from
+    :func:`~kkl_bench.results.load_results` of ``results_dir``) into ``out``.
+
+    Returns the files written.
+    """
+    profiles = sorted(set(results["profile"]))
+    if len(profiles) != 1:
+        raise ValueError(f"publish one profile at a time; the results hold {', '.join(profiles)}")
+    profile = profiles[0]
     summary = summary_table(results, with_paper=True)
     out.mkdir(parents=True, exist_ok=True)
     figure_names = draw_figures(summary, results_dir, profile, out)

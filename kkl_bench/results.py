@@ -10,6 +10,7 @@ place, so a reader (or a crash) never sees half a file.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -17,7 +18,7 @@ import platform
 import subprocess
 import tempfile
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field
 from datetime import UTC, datetime
 from functools import cache
 from importlib.metadata import PackageNotFoundError, version
@@ -155,21 +156,88 @@ def check_writable(results_dir: Path) -> None:
         ) from error
 
 
+class DamagedCellError(ValueError):
+    """A cell file that cannot be read, does not match the record schema, or is of an
+    older record format. ``path`` and ``reason`` say which and why."""
+
+    def __init__(self, path: Path, reason: str) -> None:
+        self.path, self.reason = Path(path), reason
+        super().__init__(f"damaged result file {path}: {reason}")
+
+
+_FIELDS = {f.name: f for f in dataclasses.fields(CellResult)}
+_LISTS = ("rmse", "smape", "nrmse", "per_state_rmse")
+
+
 def read_cell(path: Path) -> CellResult:
-    """Load one record written by :func:`write_cell`."""
-    return CellResult(**_from_json(json.loads(Path(path).read_text())))
+    """Load one record written by :func:`write_cell`.
+
+    Raises :class:`DamagedCellError` naming the file and the reason if it is
+    not whole JSON, not a record of this schema, or of another record format.
+    """
+    try:
+        data = _from_json(json.loads(Path(path).read_bytes()))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DamagedCellError(path, f"not valid JSON ({error}); truncated or corrupted") from None
+    if not isinstance(data, dict):
+        raise DamagedCellError(path, f"expected a JSON object, found {type(data).__name__}")
+    record_format = data.get("record_format", RECORD_FORMAT)
+    if record_format != RECORD_FORMAT:
+        raise DamagedCellError(
+            path,
+            f"record format {record_format!r}, this kkl-bench reads format {RECORD_FORMAT}; "
+            "rerun the cell (`kkl-bench run` recomputes it) or read it with the kkl-bench "
+            "version that wrote it",
+        )
+    required = {
+        name for name, f in _FIELDS.items() if f.default is MISSING and f.default_factory is MISSING
+    }
+    missing, unknown = sorted(required - set(data)), sorted(set(data) - set(_FIELDS))
+    if missing or unknown:
+        reason = "; ".join(
+            text
+            for text in (
+                missing and f"missing fields {', '.join(missing)}",
+                unknown and f"unknown fields {', '.join(unknown)}",
+            )
+            if text
+        )
+        raise DamagedCellError(path, reason)
+    if not all(isinstance(data.get(name, []), list) for name in _LISTS):
+        raise DamagedCellError(path, f"fields {', '.join(_LISTS)} must be lists")
+    return CellResult(**data)
 
 
-def load_results(results_dir: Path) -> pd.DataFrame:
+def move_aside(path: Path) -> Path:
+    """Rename a damaged cell file (and its kept estimate) to ``<name>.corrupt``; returns the new path."""
+    aside = path.with_name(path.name + ".corrupt")
+    os.replace(path, aside)
+    if estimate_path(path).exists():
+        os.replace(
+            estimate_path(path),
+            estimate_path(path).with_name(estimate_path(path).name + ".corrupt"),
+        )
+    return aside
+
+
+def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = None) -> pd.DataFrame:
     """Every cell under ``results_dir`` as one row (per-trajectory values as list columns).
 
     Columns: the :class:`CellResult` fields, plus ``rmse_mean``, ``rmse_std``,
     ``smape_mean``, ``smape_std``, ``nrmse_mean``, ``nrmse_std`` and
-    ``n_diverged``. The means are ``inf`` when any trajectory diverged.
+    ``n_diverged``. The means are ``inf`` when any trajectory diverged. A
+    damaged file raises :class:`DamagedCellError`, or, if a ``damaged`` list
+    is given, is appended to it and left out.
     """
     rows = []
     for path in sorted(Path(results_dir).glob("*/*/*/*.json")):
-        cell = read_cell(path)
+        try:
+            cell = read_cell(path)
+        except DamagedCellError as error:
+            if damaged is None:
+                raise
+            damaged.append(error)
+            continue
         row = asdict(cell)
         for metric in ("rmse", "smape", "nrmse"):
             row[f"{metric}_mean"], row[f"{metric}_std"] = mean_and_std(row[metric])

@@ -1,0 +1,81 @@
+"""Damaged result files: named, moved aside and recomputed by `run`, left out by the tables."""
+
+import json
+
+import pytest
+
+from kkl_bench.cli import main
+from kkl_bench.results import DamagedCellError, read_cell
+
+ARGS = ["--estimator", "ekf", "--system", "vdp", "--regime", "zero", "square"]
+
+
+@pytest.fixture
+def results(tmp_path, capsys):
+    assert main(["run", *ARGS, "--results", str(tmp_path)]) == 0
+    capsys.readouterr()
+    return tmp_path
+
+
+def cell(results, regime="zero"):
+    return results / "quick" / "ekf" / "vdp" / f"{regime}-seed0.json"
+
+
+def truncate(path):
+    path.write_bytes(path.read_bytes()[:100])  # a partial copy
+
+
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (truncate, "not valid JSON (Unterminated string"),
+        (
+            lambda path: path.write_text("{}"),
+            "missing fields estimator, n_test, profile, regime, seed, status",
+        ),
+        (lambda path: path.write_text("[1, 2]"), "expected a JSON object, found list"),
+        (
+            lambda path: path.write_text(
+                json.dumps({**json.loads(path.read_text()), "record_format": 0})
+            ),
+            "record format 0, this kkl-bench reads format 1; rerun the cell",
+        ),
+        (
+            lambda path: path.write_text(json.dumps({**json.loads(path.read_text()), "colour": 1})),
+            "unknown fields colour",
+        ),
+    ],
+)
+def test_a_damaged_cell_is_named_with_its_reason(results, damage, reason):
+    path = cell(results)
+    damage(path)
+    with pytest.raises(DamagedCellError) as error:
+        read_cell(path)
+    assert str(path) in str(error.value) and reason in str(error.value)
+
+
+def test_run_moves_a_truncated_cell_aside_and_recomputes_it(results, capsys):
+    path = cell(results)
+    original = json.loads(path.read_text())
+    truncate(path)
+    with pytest.warns(
+        UserWarning,
+        match=f"damaged result file {path}: not valid JSON.*moved to zero-seed0.json.corrupt",
+    ):
+        assert main(["run", *ARGS, "--results", str(results)]) == 0
+    assert "1 cells scored, 1 already done, 0 failed" in capsys.readouterr().out
+    assert read_cell(path).rmse == original["rmse"]
+    assert path.with_name("zero-seed0.json.corrupt").read_bytes() != path.read_bytes()
+
+
+def test_the_leaderboard_leaves_a_damaged_cell_out_names_it_and_fails_unless_tolerated(
+    results, capsys
+):
+    path = cell(results, "square")
+    path.write_text("{}")
+    assert main(["leaderboard", "--results", str(results)]) == 1
+    captured = capsys.readouterr()
+    assert f"left out damaged result file {path}: missing fields" in captured.err
+    assert "Van der Pol Zero" in captured.out and "Van der Pol Sqr" not in captured.out
+    assert main(["leaderboard", "--results", str(results), "--tolerate-damaged"]) == 0
+    assert "left out damaged result file" in capsys.readouterr().err
