@@ -175,6 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="add the HyperKKL paper's numbers as reference rows",
     )
     board.add_argument(
+        "--by-version",
+        action="store_true",
+        help="tabulate cells of different protocol or KKL toolkit versions as separate, "
+        "labelled groups (default: refuse to mix them)",
+    )
+    board.add_argument(
         "--details",
         action="store_true",
         help="append fit time, estimation cost and NRMSE per estimator and system (markdown)",
@@ -263,10 +269,14 @@ def _run(args: argparse.Namespace) -> int:
     return 0 if summary.ok else 1
 
 
-def _load(args: argparse.Namespace) -> tuple[pd.DataFrame, list[DamagedCellError]]:
+def _load(
+    args: argparse.Namespace, check_versions: bool = True
+) -> tuple[pd.DataFrame, list[DamagedCellError]]:
     """The results of the chosen profile and the damaged cell files left out (each warned of).
 
     Without ``--profile``: ``standard`` if present, else the only profile.
+    With ``check_versions``, cells of different protocol or toolkit versions
+    are refused (``ValueError`` naming them).
     """
     damaged: list[DamagedCellError] = []
     results = load_results(args.results, damaged)
@@ -286,7 +296,10 @@ def _load(args: argparse.Namespace) -> tuple[pd.DataFrame, list[DamagedCellError
             file=sys.stderr,
         )
     args.profile = profile
-    return results[results["profile"] == profile], damaged
+    results = results[results["profile"] == profile]
+    if check_versions:
+        leaderboard.check_not_mixed(results)
+    return results, damaged
 
 
 def _status(args: argparse.Namespace, damaged: list[DamagedCellError]) -> int:
@@ -302,11 +315,14 @@ def _status(args: argparse.Namespace, damaged: list[DamagedCellError]) -> int:
 
 
 def _leaderboard(args: argparse.Namespace) -> int:
-    results, damaged = _load(args)
-    summary = leaderboard.summary_table(results, with_paper=args.with_paper)
-    print(leaderboard.render(summary, args.format), end="")
-    if args.details:
-        print("\n" + leaderboard.cost_table(summary))
+    results, damaged = _load(args, check_versions=not args.by_version)
+    for label, cells in leaderboard.version_groups(results).items():
+        if label:
+            print(f"\n{label}\n" if args.format == "markdown" else f"# {label}")
+        summary = leaderboard.summary_table(cells, with_paper=args.with_paper)
+        print(leaderboard.render(summary, args.format), end="")
+        if args.details:
+            print("\n" + leaderboard.cost_table(summary))
     return _status(args, damaged)
 
 

@@ -70,6 +70,56 @@ def _spent(cells: pd.DataFrame) -> dict[str, float]:
     }
 
 
+VERSION_KEYS = ("protocol", "toolkit")
+"""What must agree between the cells of one table (the profile is chosen before)."""
+
+
+def versions(results: pd.DataFrame) -> pd.DataFrame:
+    """Per cell: its ``protocol`` and ``toolkit`` (KKL toolkit version; None where the
+    estimator records none)."""
+    reports = results["fit_report"] if "fit_report" in results else pd.Series([{}] * len(results))
+    return pd.DataFrame(
+        {
+            "protocol": results["protocol"].to_numpy(),
+            "toolkit": [r.get("toolkit") if isinstance(r, dict) else None for r in reports],
+        },
+        index=results.index,
+    )
+
+
+def version_groups(results: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    """``results`` split by the versions that must not mix: ``{label: cells}``.
+
+    One group (labelled ``""``) when every cell agrees; cells that record no
+    toolkit version join whichever group they are in by protocol.
+    """
+    found = versions(results)
+    toolkits = sorted({t for t in found["toolkit"] if t is not None})
+    if found["protocol"].nunique() <= 1 and len(toolkits) <= 1:
+        return {"": results}
+    groups = {}
+    for protocol in sorted(set(found["protocol"])):
+        for toolkit in toolkits or [None]:
+            mask = (found["protocol"] == protocol) & (
+                found["toolkit"].isna() | (found["toolkit"] == toolkit)
+            )
+            if mask.any():
+                groups[f"protocol {protocol}, KKL toolkit {toolkit}"] = results[mask]
+    return groups
+
+
+def check_not_mixed(results: pd.DataFrame) -> None:
+    """Raise ``ValueError`` naming what differs if the cells mix protocol or toolkit versions."""
+    groups = version_groups(results)
+    if len(groups) > 1:
+        counts = "; ".join(f"{label}: {len(cells)} cells" for label, cells in groups.items())
+        raise ValueError(
+            f"the results mix versions that one table must not mix ({counts}); rerun the old "
+            "cells, keep them in another results directory, or pass --by-version to tabulate "
+            "each group separately"
+        )
+
+
 def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFrame:
     """One row per (estimator, system, regime): the numbers every table shows.
 

@@ -85,8 +85,10 @@ class AutonomousModel:
     """Optimizer steps and samples Phase 1 took (rate selection, encoder, decoder)."""
 
     def report(self) -> dict:
-        """What a KKL plugin records with its results: rates, their selection, map quality."""
+        """What a KKL plugin records with its results: toolkit version, rates, their
+        selection, map quality."""
         return {
+            "toolkit": self.description.get("toolkit"),
             "latent_rates": self.rates.tolist(),
             "rate_selection": self.selection,
             "map_quality": self.quality,

@@ -1,4 +1,5 @@
-"""Damaged result files: named, moved aside and recomputed by `run`, left out by the tables."""
+"""The results store under faults: damaged files named, moved aside and recomputed; no table
+mixing protocol or toolkit versions."""
 
 import json
 
@@ -79,3 +80,28 @@ def test_the_leaderboard_leaves_a_damaged_cell_out_names_it_and_fails_unless_tol
     assert "Van der Pol Zero" in captured.out and "Van der Pol Sqr" not in captured.out
     assert main(["leaderboard", "--results", str(results), "--tolerate-damaged"]) == 0
     assert "left out damaged result file" in capsys.readouterr().err
+
+
+def rewrite(path, **changes):
+    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
+
+
+def test_tables_refuse_to_mix_protocol_or_toolkit_versions_unless_grouped(results, capsys):
+    rewrite(cell(results, "square"), protocol="v1")
+    assert main(["leaderboard", "--results", str(results)]) == 2
+    error = capsys.readouterr().err
+    assert "mix versions that one table must not mix" in error
+    assert (
+        "protocol v1, KKL toolkit None: 1 cells; protocol v1+E1, KKL toolkit None: 1 cells" in error
+    )
+    assert main(["leaderboard", "--results", str(results), "--by-version"]) == 0
+    out = capsys.readouterr().out
+    assert "protocol v1, KKL toolkit None" in out and "protocol v1+E1, KKL toolkit None" in out
+    assert out.count("| Estimator") == 2
+
+    rewrite(cell(results, "square"), protocol="v1+E1", fit_report={"toolkit": 4})
+    rewrite(cell(results, "zero"), fit_report={"toolkit": 5})
+    assert main(["publish", "--results", str(results), "--out", str(results / "out")]) == 2
+    assert (
+        "KKL toolkit 4: 1 cells; protocol v1+E1, KKL toolkit 5: 1 cells" in capsys.readouterr().err
+    )
