@@ -34,6 +34,7 @@ from kkl_bench.results import (
     KeptEstimate,
     cell_path,
     check_writable,
+    claim,
     move_aside,
     provenance,
     read_cell,
@@ -233,9 +234,27 @@ class Job:
     seed: int = 0
 
 
-def run_job(spec: RunSpec, job: Job) -> list[CellResult]:
-    """Run ``job`` (each cell is written as it finishes); returns its cells."""
-    return list(run_system(spec, job.estimator, job.system, job.regimes, job.seed))
+@dataclass
+class JobOutcome:
+    """The cells of a job: those it scored and those another run had finished meanwhile."""
+
+    job: Job
+    scored: list[CellResult]
+    done_elsewhere: list[CellResult]
+
+
+def run_job(spec: RunSpec, job: Job) -> JobOutcome:
+    """Run ``job`` (each cell is written as it finishes).
+
+    The job is claimed first (a file lock in the results directory, see
+    :func:`kkl_bench.results.claim`): a concurrent run on the same results
+    waits, then scores only the cells still missing.
+    """
+    with claim(spec.results_dir, job.estimator, job.system, spec.profile.name, job.seed):
+        done = {r: _done(spec, job.estimator, job.system, r, job.seed) for r in job.regimes}
+        todo = [regime for regime, cell in done.items() if cell is None]
+        scored = list(run_system(spec, job.estimator, job.system, todo, job.seed)) if todo else []
+    return JobOutcome(job, scored, [cell for cell in done.values() if cell is not None])
 
 
 def _done(spec: RunSpec, estimator: str, system: str, regime: str, seed: int) -> CellResult | None:
@@ -333,15 +352,18 @@ def run(
 
     returned = set()
     try:
-        for cells in execute(run_job, [(spec, job) for job in todo], jobs, executor, scheduler):
-            returned.add((cells[0].estimator, cells[0].system, cells[0].seed))
-            for cell in cells:
+        for outcome in execute(run_job, [(spec, job) for job in todo], jobs, executor, scheduler):
+            returned.add(outcome.job)
+            for cell in outcome.done_elsewhere:
+                summary.cached.append(cell)
+                report(cell, "cached")
+            for cell in outcome.scored:
                 record(cell)
     except (KeyboardInterrupt, ValueError):
         raise
     except Exception as error:  # a worker died (killed, out of memory): keep what finished
         for job in todo:
-            if (job.estimator, job.system, job.seed) not in returned:
+            if job not in returned:
                 for cell in _lost_cells(spec, job, error):
                     record(cell)
     return summary

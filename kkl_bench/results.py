@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from filelock import FileLock
 
 RECORD_FORMAT = 1
 """Version of the JSON layout below."""
@@ -88,6 +89,17 @@ def cell_path(
     return Path(results_dir) / profile / estimator / system / f"{regime}-seed{seed}.json"
 
 
+def claim(results_dir: Path, estimator: str, system: str, profile: str, seed: int) -> FileLock:
+    """The lock a run holds while it fits ``estimator`` on ``system`` and scores its cells.
+
+    Lock files live in ``<results_dir>/.claims/``; ``filelock`` uses ``fcntl``
+    locks, which network file systems with lock support honour.
+    """
+    path = Path(results_dir) / ".claims" / profile / f"{estimator}--{system}--seed{seed}.lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return FileLock(path)
+
+
 def estimate_path(path: Path) -> Path:
     """Where the kept estimate of the cell recorded at ``path`` lives."""
     return Path(path).with_suffix(".npz")
@@ -120,7 +132,11 @@ def read_estimate(path: Path) -> KeptEstimate | None:
 
 
 def _write_atomic(path: Path, write: Callable[[Any], Any]) -> None:
-    """Call ``write(binary_file)`` on a temporary file, then rename it to ``path``."""
+    """Call ``write(binary_file)`` on a temporary file, then rename it to ``path``.
+
+    If anything fails part-way (a full disk, say) the temporary file is
+    removed, ``path`` is left as it was, and the ``OSError`` names ``path``.
+    """
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         os.fchmod(handle, 0o666 & ~_umask())  # mkstemp makes 0600; results are shared files
@@ -129,6 +145,9 @@ def _write_atomic(path: Path, write: Callable[[Any], Any]) -> None:
             file.flush()
             os.fsync(file.fileno())
         os.replace(temporary, path)
+    except OSError as error:
+        Path(temporary).unlink(missing_ok=True)
+        raise OSError(error.errno, f"could not write {path}: {error.strerror or error}") from error
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise

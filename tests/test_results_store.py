@@ -1,7 +1,11 @@
 """The results store under faults: damaged files named, moved aside and recomputed; no table
 mixing protocol or toolkit versions."""
 
+import errno
 import json
+import re
+import subprocess
+import sys
 
 import pytest
 
@@ -105,3 +109,52 @@ def test_tables_refuse_to_mix_protocol_or_toolkit_versions_unless_grouped(result
     assert (
         "KKL toolkit 4: 1 cells; protocol v1+E1, KKL toolkit 5: 1 cells" in capsys.readouterr().err
     )
+
+
+def test_two_runs_on_one_results_folder_score_each_cell_once(tmp_path):
+    command = [
+        sys.executable,
+        "-m",
+        "kkl_bench.cli",
+        "run",
+        "--estimator",
+        "ekf",
+        "ukf",
+        "--system",
+        "duffing",
+        "vdp",
+        "--regime",
+        "zero",
+        "square",
+        "--results",
+        str(tmp_path),
+    ]
+    runs = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    counts = []
+    for process in runs:
+        out, _ = process.communicate(timeout=300)
+        assert process.returncode == 0
+        scored, done = re.search(r"(\d+) cells scored, (\d+) already done, 0 failed", out).groups()
+        counts.append((int(scored), int(done)))
+    assert sum(scored for scored, _ in counts) == 8  # every cell scored by exactly one run
+    assert all(scored + done == 8 for scored, done in counts)
+    assert len(list(tmp_path.glob("quick/*/*/*.json"))) == 8
+
+
+def test_a_write_that_fails_part_way_leaves_no_file_and_a_clear_error(
+    tmp_path, monkeypatch, capsys
+):
+    from kkl_bench import results as store
+
+    def full_disk(descriptor):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(store.os, "fsync", full_disk)
+    assert main(["run", *ARGS, "--results", str(tmp_path)]) == 2
+    error = capsys.readouterr().err
+    assert re.search(
+        r"kkl-bench: error: \[Errno 28\] could not write \S+/vdp/zero-seed0\.(json|npz): No space",
+        error,
+    )
+    written = [p for p in tmp_path.rglob("*") if p.is_file() and ".claims" not in p.parts]
+    assert written == []  # nothing partial, no temporaries
