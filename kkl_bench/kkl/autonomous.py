@@ -14,6 +14,8 @@
 
 The result is cached under a key of everything that determines it, so the
 four KKL plugins (and reruns) share one Phase-1 model per system and seed.
+The training checkpoints itself (:func:`kkl_bench.kkl.optimize.resumable`):
+a Phase 1 that is killed continues from its last checkpoint when rerun.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from kkl_bench.kkl.data import Box, ObserverData, burn_in_steps, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.kkl.networks import NormalizedMLP, seeded
-from kkl_bench.kkl.optimize import counting, minimize
+from kkl_bench.kkl.optimize import counting, minimize, resumable
 from kkl_bench.kkl.pde import normalized_field_rms, pde_residual
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.signals import InputFamily
@@ -259,14 +261,18 @@ def _train_encoder(
 
 
 def _train_phase1(
-    context: FitContext, config: Phase1Config, encoder: NormalizedMLP, decoder: NormalizedMLP
+    context: FitContext,
+    config: Phase1Config,
+    encoder: NormalizedMLP,
+    decoder: NormalizedMLP,
+    generator: torch.Generator,
 ) -> tuple[np.ndarray, dict[str, float]]:
-    """Choose the latent rates, then train ``encoder`` and ``decoder`` in place.
+    """Choose the latent rates, then train ``encoder`` and ``decoder`` in place; every
+    random draw of the training comes from ``generator``.
 
     Returns the rates and the validation score of each candidate range.
     """
     system = context.system
-    generator = torch.Generator().manual_seed(context.seed)
     unforced = regimes.get("zero")()
     boxes = training_boxes(context, config)
     rates, selection = _select_rates(context, config, unforced, boxes, generator)
@@ -301,8 +307,12 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
     with cache.claim("kkl-phase1", description):
         stored = cache.load("kkl-phase1", description)
         if stored is None:
-            with counting() as spending:
-                rates, selection = _train_phase1(context, config, encoder, decoder)
+            generator = torch.Generator().manual_seed(context.seed)
+            with (
+                counting() as spending,
+                resumable(context.cache_dir, description, [generator]),
+            ):
+                rates, selection = _train_phase1(context, config, encoder, decoder, generator)
             stored = {
                 "encoder": encoder.state_dict(),
                 "decoder": decoder.state_dict(),

@@ -78,6 +78,12 @@ class CheckpointCache:
         checksum.unlink(missing_ok=True)
         return None
 
+    def remove(self, kind: str, description: dict[str, Any]) -> None:
+        """Delete ``description``'s checkpoint and its checksum, if present."""
+        path = self.path(kind, description)
+        path.unlink(missing_ok=True)
+        checksum_path(path).unlink(missing_ok=True)
+
     def save(self, kind: str, description: dict[str, Any], state: dict[str, Any]) -> Path:
         """Store ``state`` (tensors, numbers, strings, lists, dicts) atomically."""
         path = self.path(kind, description)

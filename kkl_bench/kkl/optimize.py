@@ -1,15 +1,32 @@
 """One Adam loop for every KKL training phase: clipping, cosine schedule, progress bar,
-and a ledger of the optimizer steps and samples every training spends."""
+a ledger of the optimizer steps and samples every training spends, and resumable
+checkpoints for long trainings.
+
+Inside a :func:`resumable` block every :func:`minimize` call is numbered and
+writes its state (parameters, optimizer, schedule, losses, the block's random
+generators) to the checkpoint cache every ``every`` steps and when it ends.
+Rerun after a kill, the same block replays the calls that had finished from
+their final checkpoints and continues the interrupted one from its last, so
+the result is the same as that of an uninterrupted run for the same seed.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import torch
 from tqdm import tqdm
+
+from kkl_bench.kkl.cache import CheckpointCache
+
+RESUME_KIND = "kkl-resume"
+CHECKPOINT_EVERY = 500
+"""Optimizer steps between two checkpoints of a resumable training."""
 
 
 @dataclass
@@ -41,6 +58,85 @@ def counting() -> Iterator[Spent]:
         _LEDGERS.reset(token)
 
 
+@dataclass
+class _Resume:
+    """The checkpoints of one :func:`resumable` block."""
+
+    cache: CheckpointCache
+    description: dict[str, Any]
+    generators: list[torch.Generator]
+    every: int
+    calls: int = 0
+    written: list[dict[str, Any]] = field(default_factory=list)
+
+    SLOTS = (0, 1)
+    """Checkpoints alternate between two slots, so a kill while one is written
+    leaves the other whole."""
+
+    def next_call(self) -> dict[str, Any]:
+        """The checkpoint description of the next :func:`minimize` call."""
+        self.calls += 1
+        call = {"training": self.description, "call": self.calls}
+        self.written += [{**call, "slot": slot} for slot in self.SLOTS]
+        return call
+
+    def save(self, call, step, parameters, optimizer, schedule, losses) -> None:
+        self.cache.save(
+            RESUME_KIND,
+            {**call, "slot": (step // self.every) % len(self.SLOTS)},
+            {
+                "step": step,
+                "parameters": [p.detach().clone() for p in parameters],
+                "optimizer": optimizer.state_dict(),
+                "schedule": schedule.state_dict(),
+                "losses": list(losses),
+                "generators": [g.get_state() for g in self.generators],
+            },
+        )
+
+    def restore(self, call, parameters, optimizer, schedule) -> tuple[int, list[float]]:
+        """Load the call's newest whole checkpoint into the training state; ``(step, losses)``."""
+        slots = [self.cache.load(RESUME_KIND, {**call, "slot": slot}) for slot in self.SLOTS]
+        stored = max((s for s in slots if s is not None), key=lambda s: s["step"], default=None)
+        if stored is None:
+            return 0, []
+        with torch.no_grad():
+            for parameter, value in zip(parameters, stored["parameters"], strict=True):
+                parameter.copy_(value)
+        optimizer.load_state_dict(stored["optimizer"])
+        schedule.load_state_dict(stored["schedule"])
+        for generator, state in zip(self.generators, stored["generators"], strict=True):
+            generator.set_state(state)
+        return stored["step"], list(stored["losses"])
+
+
+_RESUME: ContextVar[_Resume | None] = ContextVar("kkl_bench_resume", default=None)
+
+
+@contextmanager
+def resumable(
+    cache_dir: Path,
+    description: dict[str, Any],
+    generators: list[torch.Generator],
+    every: int | None = None,
+) -> Iterator[None]:
+    """Checkpoint every :func:`minimize` call in the block (see the module).
+
+    ``description`` identifies the training (as its cache key does);
+    ``generators`` are every random generator the block's losses draw from;
+    ``every`` defaults to :data:`CHECKPOINT_EVERY`. The checkpoints are
+    removed when the block completes.
+    """
+    resume = _Resume(CheckpointCache(cache_dir), description, generators, every or CHECKPOINT_EVERY)
+    token = _RESUME.set(resume)
+    try:
+        yield
+    finally:
+        _RESUME.reset(token)
+    for written in resume.written:  # reached only when the block completed
+        resume.cache.remove(RESUME_KIND, written)
+
+
 def minimize(
     loss_fn: Callable[[int], torch.Tensor],
     parameters: Iterable[torch.nn.Parameter],
@@ -61,8 +157,14 @@ def minimize(
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
         optimizer, max(steps, 1), eta_min=0.01 * lr
     )
-    losses = []
-    with tqdm(range(steps), desc=description, leave=False, disable=None, mininterval=1.0) as bar:
+    resume = _RESUME.get()
+    checkpoint = resume.next_call() if resume else None
+    start, losses = (0, [])
+    if resume:
+        start, losses = resume.restore(checkpoint, parameters, optimizer, schedule)
+    with tqdm(
+        range(start, steps), desc=description, leave=False, disable=None, mininterval=1.0
+    ) as bar:
         for step in bar:
             optimizer.zero_grad(set_to_none=True)
             loss = loss_fn(step)
@@ -73,6 +175,8 @@ def minimize(
             losses.append(loss.item())
             if step % 100 == 0:
                 bar.set_postfix(loss=f"{losses[-1]:.3g}")
+            if resume and ((step + 1) % resume.every == 0 or step + 1 == steps):
+                resume.save(checkpoint, step + 1, parameters, optimizer, schedule, losses)
     for spent in _LEDGERS.get():
         spent.steps += steps
         spent.samples += steps * samples_per_step
