@@ -5,12 +5,12 @@ import errno
 import json
 import re
 import subprocess
-import sys
 
 import pytest
 
 from kkl_bench.cli import main
 from kkl_bench.results import DamagedCellError, read_cell
+from tests.test_executors import run_command
 
 ARGS = ["--estimator", "ekf", "--system", "vdp", "--regime", "zero", "square"]
 
@@ -112,23 +112,7 @@ def test_tables_refuse_to_mix_protocol_or_toolkit_versions_unless_grouped(result
 
 
 def test_two_runs_on_one_results_folder_score_each_cell_once(tmp_path):
-    command = [
-        sys.executable,
-        "-m",
-        "kkl_bench.cli",
-        "run",
-        "--estimator",
-        "ekf",
-        "ukf",
-        "--system",
-        "duffing",
-        "vdp",
-        "--regime",
-        "zero",
-        "square",
-        "--results",
-        str(tmp_path),
-    ]
+    command = run_command(tmp_path, "--system", "duffing", "vdp", "--regime", "zero", "square")
     runs = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True) for _ in range(2)]
     counts = []
     for process in runs:
