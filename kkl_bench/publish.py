@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from kkl_bench import figures
+from kkl_bench import figures, variants
 from kkl_bench.leaderboard import (
     COST_COLUMNS,
     PAPER_PREFIX,
@@ -36,6 +36,7 @@ from kkl_bench.leaderboard import (
     render,
     summary_table,
 )
+from kkl_bench.registry import estimators
 from kkl_bench.results import kept_estimates
 
 RESULTS_LINK = "results"
@@ -65,7 +66,8 @@ def _provenance(results: pd.DataFrame) -> dict[str, list[str]]:
 
 
 def _reading_guide(summary: pd.DataFrame) -> str:
-    single = sorted(set(summary.loc[summary["n_seeds"] == 1, "estimator"]))
+    ours = {e for e in summary["estimator"] if not e.startswith(PAPER_PREFIX)}
+    single = sorted(e for e in ours if not estimators.get(variants.base_name(e)).uses_seed)
     seeds = int(summary["n_seeds"].max())
     return f"""Each cell reads `RMSE ± std (SMAPE %)`: for every training seed, the mean
 over the test trajectories of the steady-state RMSE; then the mean of those
@@ -229,10 +231,8 @@ def _html_table(
     frame: pd.DataFrame, columns: dict[str, str], table_id: str, mark: pd.Series | None = None
 ) -> str:
     """A sortable table; rows carry ``data-system`` / ``data-regime`` for the filters."""
-    head = "".join(
-        f'<th class="{"text" if frame[c].dtype == object else "num"}">{html.escape(t)}</th>'
-        for c, t in columns.items()
-    )
+    kinds = {c: "num" if pd.api.types.is_numeric_dtype(frame[c]) else "text" for c in columns}
+    head = "".join(f'<th class="{kinds[c]}">{html.escape(t)}</th>' for c, t in columns.items())
     rows = []
     for index, row in frame.iterrows():
         attributes = "".join(
@@ -243,7 +243,7 @@ def _html_table(
         cells = []
         for column in columns:
             value = row[column]
-            css = "text" if frame[column].dtype == object else "num"
+            css = kinds[column]
             if column == "rmse_mean" and mark is not None and mark[index]:
                 css += f" {mark[index]}"
             if isinstance(value, float | int) and not isinstance(value, bool):
