@@ -81,7 +81,9 @@ def versions(results: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(
         {
             "protocol": results["protocol"].to_numpy(),
-            "toolkit": [r.get("toolkit") if isinstance(r, dict) else None for r in reports],
+            "toolkit": pd.array(
+                [r.get("toolkit") if isinstance(r, dict) else None for r in reports], dtype="Int64"
+            ),
         },
         index=results.index,
     )
@@ -94,7 +96,7 @@ def version_groups(results: pd.DataFrame) -> dict[str, pd.DataFrame]:
     toolkit version join whichever group they are in by protocol.
     """
     found = versions(results)
-    toolkits = sorted({t for t in found["toolkit"] if t is not None})
+    toolkits = sorted(found["toolkit"].dropna().unique())
     if found["protocol"].nunique() <= 1 and len(toolkits) <= 1:
         return {"": results}
     groups = {}

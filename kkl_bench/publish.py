@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import html
 import math
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -67,7 +68,11 @@ def _provenance(results: pd.DataFrame) -> dict[str, list[str]]:
 
 def _reading_guide(summary: pd.DataFrame) -> str:
     ours = {e for e in summary["estimator"] if not e.startswith(PAPER_PREFIX)}
-    single = sorted(e for e in ours if not estimators.get(variants.base_name(e)).uses_seed)
+    installed = set(estimators.names())  # publishing needs no plugin; those installed say more
+    bases = {e: variants.base_name(e) for e in ours}
+    single = sorted(
+        e for e in ours if bases[e] in installed and not estimators.get(bases[e]).uses_seed
+    )
     seeds = int(summary["n_seeds"].max())
     return f"""Each cell reads `RMSE ± std (SMAPE %)`: for every training seed, the mean
 over the test trajectories of the steady-state RMSE; then the mean of those
@@ -134,9 +139,12 @@ steps and samples are counted in every KKL row but spent once. The second
 phase is the estimator's own training (hypernetwork, injection network,
 curriculum or decoder adaptation). A *sample* is one example a loss
 evaluates (a state-latent pair, a PDE collocation point, an input window
-with its state). Fit times are wall times of each fit on a 2-core machine
-running two jobs at once; Phase 1 counts in the fit time of the first KKL
-estimator that trained it.
+with its state). Fit times are the wall times of each fit where it ran
+(they depend on the machine and on how many jobs ran beside it). Trained
+networks are cached and shared: Phase 1 counts in the fit time of the first
+KKL estimator that trained it, and a variant that changes only how trained
+networks are used online (such as `[guard=True]`) shows only the time to load
+them.
 
 {cost_table(summary)}
 
@@ -227,6 +235,13 @@ def _number(value) -> str:
     return repr(float(value))
 
 
+def _inline_markdown(text: str) -> str:
+    """The inline Markdown the reading guide uses (`code`, **bold**, *italics*) as HTML."""
+    text = re.sub(r"`([^`]+)`", r"<code>\1</code>", text)
+    text = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", text)
+    return re.sub(r"\*([^*]+)\*", r"<em>\1</em>", text)
+
+
 def _html_table(
     frame: pd.DataFrame, columns: dict[str, str], table_id: str, mark: pd.Series | None = None
 ) -> str:
@@ -313,7 +328,7 @@ def _page(
     )
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
     commands = reproduce_commands(profile, estimators, sorted(set(results["seed"])))
-    guide = html.escape(_reading_guide(summary)).replace("\n\n", "</p><p>")
+    guide = _inline_markdown(html.escape(_reading_guide(summary))).replace("\n\n", "</p><p>")
     return f"""<!DOCTYPE html>
 <html lang="en">
 <head>

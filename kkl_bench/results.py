@@ -92,11 +92,15 @@ def cell_path(
 def claim(results_dir: Path, estimator: str, system: str, profile: str, seed: int) -> FileLock:
     """The lock a run holds while it fits ``estimator`` on ``system`` and scores its cells.
 
-    Lock files live in ``<results_dir>/.claims/``; ``filelock`` uses ``fcntl``
-    locks, which network file systems with lock support honour.
+    Lock files live in ``<results_dir>/.claims/``, which ignores itself in git
+    (removing a released lock file would race with a run about to take it);
+    ``filelock`` uses ``fcntl`` locks, which network file systems with lock
+    support honour.
     """
-    path = Path(results_dir) / ".claims" / profile / f"{estimator}--{system}--seed{seed}.lock"
+    claims = Path(results_dir) / ".claims"
+    path = claims / profile / f"{estimator}--{system}--seed{seed}.lock"
     path.parent.mkdir(parents=True, exist_ok=True)
+    (claims / ".gitignore").write_text("*\n")
     return FileLock(path)
 
 

@@ -30,13 +30,9 @@ def parse(name: str) -> tuple[str, dict]:
     its error listing the valid ones); parameters are checked against the
     estimator's ``__init__``.
     """
-    match = _NAME.match(name.strip())
-    if match is None:
-        raise VariantError(
-            f"malformed estimator name {name!r}; expected NAME or NAME[key=value,...]"
-        )
-    base = match["base"].strip()
+    base = base_name(name)
     cls = estimators.get(base)
+    match = _NAME.match(name.strip())
     params = {}
     text = match["params"]
     if text is not None and text.strip():
@@ -80,5 +76,11 @@ def build(name: str) -> Estimator:
 
 
 def base_name(name: str) -> str:
-    """The registered estimator a (variant) name refers to."""
-    return parse(name)[0]
+    """The estimator a (variant) name refers to, read from the name alone (it need not
+    be installed: stored results outlive their plugins)."""
+    match = _NAME.match(name.strip())
+    if match is None:
+        raise VariantError(
+            f"malformed estimator name {name!r}; expected NAME or NAME[key=value,...]"
+        )
+    return match["base"].strip()

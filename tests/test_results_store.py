@@ -103,8 +103,11 @@ def test_tables_refuse_to_mix_protocol_or_toolkit_versions_unless_grouped(result
     assert "protocol v1, KKL toolkit None" in out and "protocol v1+E1, KKL toolkit None" in out
     assert out.count("| Estimator") == 2
 
-    rewrite(cell(results, "square"), protocol="v1+E1", fit_report={"toolkit": 4})
+    rewrite(cell(results, "square"), protocol="v1+E1", fit_report={})
     rewrite(cell(results, "zero"), fit_report={"toolkit": 5})
+    assert main(["publish", "--results", str(results), "--out", str(results / "out")]) == 0
+
+    rewrite(cell(results, "square"), fit_report={"toolkit": 4})
     assert main(["publish", "--results", str(results), "--out", str(results / "out")]) == 2
     assert (
         "KKL toolkit 4: 1 cells; protocol v1+E1, KKL toolkit 5: 1 cells" in capsys.readouterr().err
@@ -123,6 +126,7 @@ def test_two_runs_on_one_results_folder_score_each_cell_once(tmp_path):
     assert sum(scored for scored, _ in counts) == 8  # every cell scored by exactly one run
     assert all(scored + done == 8 for scored, done in counts)
     assert len(list(tmp_path.glob("quick/*/*/*.json"))) == 8
+    assert (tmp_path / ".claims" / ".gitignore").read_text() == "*\n"  # locks stay out of git
 
 
 def test_a_write_that_fails_part_way_leaves_no_file_and_a_clear_error(
