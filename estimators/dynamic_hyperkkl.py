@@ -124,7 +124,7 @@ class DynamicHyperKKL(KKLEstimator):
                 [x[trajectory, step].unsqueeze(1), others], dim=1
             )  # (windows, points, n_x)
             field = system.f(states) + u[trajectory, step].unsqueeze(1) * g
-            t_now, dt_field = directional_derivative(lambda s: encoder(s, theta_now), states, field)
+            t_now, dt_field = directional_derivative(encoder, states, field, theta_now)
             t_next = encoder(states, theta_next)
             residual = (
                 dt_field + (t_next - t_now) / context.dt - t_now @ a.T - system.h(states) @ b.T

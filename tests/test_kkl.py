@@ -109,7 +109,7 @@ def test_uncontrollable_or_unstable_latent_pairs_are_refused():
         latent_matrices(np.array([1.0, 1.0, 2.0]))
 
 
-def test_pde_residual_by_jvp_equals_residual_by_explicit_jacobian():
+def test_pde_residual_by_forward_tangent_equals_residual_by_explicit_jacobian():
     torch.manual_seed(0)
     encoder = NormalizedMLP(3, 7, 16, 2)
     system = systems.get("lorenz")()
@@ -118,12 +118,36 @@ def test_pde_residual_by_jvp_equals_residual_by_explicit_jacobian():
         for m in latent_matrices(spread_eigenvalues(7, 1.0, 10.0))
     )
     x = 5 * torch.randn(32, 3)
-    by_jvp = pde_residual(encoder, x, system.f(x), system.h(x), a, b)
+    by_tangent = pde_residual(encoder, x, system.f(x), system.h(x), a, b)
     jacobians = torch.stack([torch.autograd.functional.jacobian(encoder, point) for point in x])
     explicit = (
         torch.einsum("bzx,bx->bz", jacobians, system.f(x)) - encoder(x) @ a.T - system.h(x) @ b.T
     )
-    torch.testing.assert_close(by_jvp, explicit, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(by_tangent, explicit, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("perturbed", [False, True])
+def test_forward_tangent_equals_torch_func_jvp_values_and_parameter_gradients(perturbed):
+    torch.manual_seed(0)
+    network = NormalizedMLP(3, 5, 16, 3)
+    network.set_normalization(2 * torch.randn(200, 3) + 1, torch.randn(200, 5) @ torch.randn(5, 5))
+    x, v = torch.randn(4, 6, 3), torch.randn(4, 6, 3)
+    deltas = None
+    if perturbed:  # a hypernetwork's per-window weight perturbations
+        deltas = [
+            (0.1 * torch.randn(4, *w), 0.1 * torch.randn(4, *b))
+            for w, b in network.parameter_shapes()
+        ]
+    value, tangent = network.forward_with_tangent(x, v, deltas)
+    (tangent.square().sum() + value.sum()).backward()
+    ours = [p.grad.clone() for p in network.parameters()]
+    network.zero_grad()
+    value_ref, tangent_ref = torch.func.jvp(lambda s: network(s, deltas), (x,), (v,))
+    (tangent_ref.square().sum() + value_ref.sum()).backward()
+    torch.testing.assert_close(value, value_ref)
+    torch.testing.assert_close(tangent, tangent_ref, rtol=1e-5, atol=1e-5)
+    for mine, reference in zip(ours, (p.grad for p in network.parameters()), strict=True):
+        torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-5)
 
 
 def test_whitening_gives_unit_covariance_and_colouring_inverts_it():

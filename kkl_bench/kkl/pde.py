@@ -2,29 +2,31 @@
 
 ``v`` is the vector field: ``f(x)`` for the autonomous PDE, ``f(x) + g u``
 for the forced one. The directional derivative ``dT/dx(x) v`` is one
-forward-mode JVP through the encoder (``torch.func.jvp``), never a full
-per-sample Jacobian; parameter gradients flow through it.
+forward pass carrying a tangent through the encoder
+(:meth:`NormalizedMLP.forward_with_tangent`), never a full per-sample
+Jacobian; parameter gradients flow through it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
-from torch.func import jvp
 
-from kkl_bench.kkl.networks import NormalizedMLP
+from kkl_bench.kkl.networks import LayerDeltas, NormalizedMLP
 
 
 def directional_derivative(
-    encoder: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, v: torch.Tensor
+    encoder: NormalizedMLP, x: torch.Tensor, v: torch.Tensor, deltas: LayerDeltas | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(T(x), dT/dx(x) v)`` for ``x, v: (..., n_x)``."""
-    return jvp(encoder, (x,), (v,))
+    """``(T(x), dT/dx(x) v)`` for ``x, v: (..., n_x)`` (``deltas``: a hypernetwork's
+    weight perturbations, see :meth:`NormalizedMLP.normalized`). Another module
+    (an exact map in a test) goes through ``torch.func.jvp``."""
+    if isinstance(encoder, NormalizedMLP):
+        return encoder.forward_with_tangent(x, v, deltas)
+    return torch.func.jvp(encoder, (x,), (v,))
 
 
 def pde_residual(
-    encoder: Callable[[torch.Tensor], torch.Tensor],
+    encoder: NormalizedMLP,
     x: torch.Tensor,
     v: torch.Tensor,
     h_x: torch.Tensor,
