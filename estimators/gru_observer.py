@@ -8,11 +8,10 @@ weighs the states as the benchmark's RMSE does).
 
 Training data are trajectories of the training streams only: half unforced,
 half forced by :data:`~kkl_bench.kkl.inputs.FORCED_TRAINING` (the KKL plugins'
-training families). Each Adam step draws ``rnn_batch`` trajectories and one
-window of ``rnn_window`` samples; the network runs without gradients from
-``t = 0`` up to the window (so its hidden state is the one it will hold at
-test time) and with gradients through the window: truncated backpropagation
-through time. The model is cached and its training checkpointed like the
+training families). Training is truncated backpropagation through time in
+sweeps: ``rnn_batch`` trajectories are walked from ``t = 0`` in consecutive
+windows of ``rnn_window`` samples, one Adam step per window, the hidden state
+carried from window to window as it is at test time. The model is cached and its training checkpointed like the
 KKL models (:func:`kkl_bench.kkl.optimize.resumable`); the fit report records
 the steps, samples and the RMSE on validation trajectories of a separate
 training stream.
@@ -39,7 +38,7 @@ from kkl_bench.registry import estimators, regimes
 
 CELLS = {"gru": nn.GRU, "lstm": nn.LSTM}
 KIND = "recurrent-observer"
-VERSION = 1
+VERSION = 2
 """Bump when a change to this module changes what a given configuration trains."""
 
 
@@ -103,22 +102,37 @@ def _train(
     yu: torch.Tensor,
     x: torch.Tensor,
     config: RecurrentConfig,
-    generator: torch.Generator,
+    seed: int,
     label: str,
 ) -> list[float]:
-    """Truncated BPTT on random windows of ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)``."""
+    """Truncated BPTT over ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)``.
+
+    Training runs in sweeps: a sweep draws ``rnn_batch`` trajectories
+    (a function of ``seed`` and the sweep's number only) and walks them from
+    ``t = 0`` in consecutive windows of ``rnn_window`` samples, one Adam step
+    per window, carrying the hidden state (detached) from window to window as
+    at test time. A run resumed in the middle of a sweep rebuilds the carried
+    state without gradients.
+    """
     target = (x - network.out_mean) / network.out_scale
     count, steps = yu.shape[:2]
     window = min(config.rnn_window, steps)
+    per_sweep = steps // window
+    carried = {"sweep": None, "state": None}
 
-    def loss(_):
-        rows = torch.randint(count, (config.rnn_batch,), generator=generator)
-        start = int(torch.randint(steps - window + 1, (1,), generator=generator))
-        state = None
-        if start:
-            with torch.no_grad():
-                _, state = network.normalized(yu[rows, :start])
-        out, _ = network.normalized(yu[rows, start : start + window], state)
+    def loss(step):
+        sweep, position = divmod(step, per_sweep)
+        rows = torch.as_tensor(np.random.default_rng([seed, sweep]).choice(count, config.rnn_batch))
+        start = position * window
+        if carried["sweep"] != sweep:  # a new sweep, or resumed inside one
+            carried["sweep"], carried["state"] = sweep, None
+            if start:
+                with torch.no_grad():
+                    carried["state"] = network.normalized(yu[rows, :start])[1]
+        out, state = network.normalized(yu[rows, start : start + window], carried["state"])
+        carried["state"] = (
+            tuple(s.detach() for s in state) if isinstance(state, tuple) else state.detach()
+        )
         return (out - target[rows, start : start + window]).pow(2).sum(-1).mean()
 
     return minimize(
@@ -181,9 +195,8 @@ class GRUObserver(Estimator):
         x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
         yu, x = _inputs(y, u), torch.as_tensor(x, dtype=torch.float32)
         network.set_normalization(yu, x)
-        generator = torch.Generator().manual_seed(context.seed)
-        with counting() as spent, resumable(context.cache_dir, description, [generator]):
-            losses = _train(network, yu, x, config, generator, f"{context.system.name}: {KIND}")
+        with counting() as spent, resumable(context.cache_dir, description, []):
+            losses = _train(network, yu, x, config, context.seed, f"{context.system.name}: {KIND}")
         x_val, y_val, u_val = simulate_families(
             context, families, config.rnn_validation, "rnn/validation"
         )
