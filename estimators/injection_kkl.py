@@ -37,9 +37,9 @@ from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.estimator import KKLEstimator
+from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import GAINS, select_gain, simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
-from kkl_bench.kkl.pde import directional_derivative
 from kkl_bench.kkl.phase2 import load_or_train, phase2_description
 from kkl_bench.protocol.metrics import steady_state_start
 from kkl_bench.registry import estimators, regimes
@@ -61,15 +61,19 @@ class AdaptationConfig:
 def exact_injection(model: AutonomousModel, g: np.ndarray, u: np.ndarray, gain: float = 1.0):
     """``injection(k, z_k) = gain dT/dx(T*(z_k)) g u_k`` for :meth:`LatentObserver.run`.
 
-    ``u: (batch, steps, 1)``; returns ``(batch, n_z)`` arrays (float64).
+    ``u: (batch, steps, 1)``; returns ``(batch, n_z)`` arrays. The maps run as
+    :class:`FrozenMLP` copies of the current networks, and not at all where
+    ``gain u_k`` is zero on every trajectory.
     """
-    direction = torch.as_tensor(g, dtype=torch.float32)
+    decoder, encoder = FrozenMLP.of(model.decoder), FrozenMLP.of(model.encoder)
+    direction = np.asarray(g, dtype=np.float32)
+    forced = u.any(axis=(0, 2)) & (gain != 0)
 
     def injection(k: int, z: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            x_hat = model.decoder(torch.as_tensor(z, dtype=torch.float32))
-            _, along_g = directional_derivative(model.encoder, x_hat, direction.expand_as(x_hat))
-        return gain * u[:, k] * along_g.double().numpy()
+        if not forced[k]:
+            return np.zeros_like(z)
+        _, along_g = encoder.with_tangent(decoder(z), direction)
+        return gain * u[:, k] * along_g
 
     return injection
 

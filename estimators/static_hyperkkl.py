@@ -24,10 +24,11 @@ import torch
 from torch import nn
 
 from kkl_bench.kkl.estimator import KKLEstimator
+from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
-from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2, to_numpy
+from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
 from kkl_bench.kkl.windows import WindowEncoder, sliding_windows
 from kkl_bench.registry import estimators
 
@@ -124,25 +125,38 @@ class StaticHyperKKL(KKLEstimator):
         )
         return {"final_loss": float(np.mean(losses[-50:]))}
 
-    def contexts(self, u: np.ndarray) -> torch.Tensor:
-        """``(batch, steps, lstm_hidden)`` embeddings of every input window."""
-        windows = sliding_windows(u, self.config_.window)
-        flat = windows.reshape(-1, windows.shape[-1])
+    def contexts(self, windows: torch.Tensor) -> torch.Tensor:
+        """``(n, lstm_hidden)`` embeddings of ``windows: (n, window + 1)``."""
         with torch.no_grad():
-            parts = [self.injection_.window_encoder(part) for part in flat.split(CONTEXT_CHUNK)]
-        return torch.cat(parts).reshape(*windows.shape[:2], -1)
+            parts = [self.injection_.window_encoder(part) for part in windows.split(CONTEXT_CHUNK)]
+        return torch.cat(parts) if parts else torch.zeros(0, self.config_.lstm_hidden)
 
     def _injection(self, u: np.ndarray, gain: float):
-        """``injection(k, z_k) = gain u_k psi(z_k, c_k)`` (latent units) for ``u: (batch, steps, 1)``."""
+        """``injection(k, z_k) = gain u_k psi(z_k, c_k)`` (latent units) for ``u: (batch, steps, 1)``.
+
+        ``psi`` runs as a :class:`FrozenMLP` in physical latent units; the
+        window embeddings ``c_k`` are computed, and multiplied by ``psi``'s
+        first layer, once for all samples, and only where ``gain u_k`` is
+        non-zero (elsewhere the injection is zero whatever ``c_k`` is).
+        """
         encoder = self.model_.encoder
-        contexts = self.contexts(u)
-        coloring = to_numpy(encoder.out_coloring)  # psi is in normalized latent units
+        layers = [layer for layer in self.injection_.body if isinstance(layer, nn.Linear)]
+        psi, context_weight = (
+            FrozenMLP.from_layers(layers)
+            .before_affine(encoder.out_coloring, torch.zeros(encoder.out_coloring.shape[0]))
+            .split_input(encoder.out_mean.shape[0])
+        )
+        psi = psi.after_affine(encoder.out_mean, encoder.out_whitening)
+        forced = (u[..., 0] != 0) & (gain != 0)  # (batch, steps)
+        windows = sliding_windows(u, self.config_.window)[torch.as_tensor(forced)]
+        offsets = np.zeros((*forced.shape, context_weight.shape[1]), dtype=np.float32)
+        offsets[forced] = self.contexts(windows).numpy() @ context_weight
+        forced_step = forced.any(axis=0)
 
         def injection(k, z):
-            z_tilde = encoder.normalized_output(torch.as_tensor(z, dtype=torch.float32))
-            with torch.no_grad():
-                psi = to_numpy(self.injection_(z_tilde, contexts[:, k]))
-            return gain * u[:, k] * psi @ coloring
+            if not forced_step[k]:
+                return np.zeros_like(z)
+            return gain * u[:, k] * psi(z, offsets[:, k])
 
         return injection
 

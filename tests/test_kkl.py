@@ -12,11 +12,13 @@ from scipy.linalg import solve_sylvester
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl import autonomous, optimize
 from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomous, training_boxes
+from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.hyper import ChunkedHead, LowRankHead, make_head
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.kkl.networks import NormalizedMLP, affine_normalization
-from kkl_bench.kkl.pde import pde_residual
+from kkl_bench.kkl.pde import directional_derivative, pde_residual
+from kkl_bench.kkl.windows import sliding_windows
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import estimators, regimes, systems
@@ -189,6 +191,42 @@ def test_normalized_mlp_maps_physical_units_through_whitened_coordinates():
     )
 
 
+def test_frozen_mlp_equals_the_torch_network_and_its_tangent():
+    torch.manual_seed(0)
+    network = NormalizedMLP(3, 5, 32, 3)
+    network.set_normalization(
+        torch.randn(400, 3) * torch.tensor([1.0, 10.0, 0.1]) + 2.0,
+        torch.randn(400, 5) @ torch.randn(5, 5),
+        whiten_outputs=True,
+    )
+    x, v = torch.randn(20, 3), torch.tensor([0.0, 1.0, 0.5])
+    with torch.no_grad():
+        value, tangent = network.forward_with_tangent(x, v.expand_as(x))
+    frozen = FrozenMLP.of(network)
+    frozen_value, frozen_tangent = frozen.with_tangent(x.numpy(), v.numpy())
+    for got, expected in (
+        (frozen(x.numpy()), value),
+        (frozen_value, value),
+        (frozen_tangent, tangent),
+    ):
+        assert got.dtype == np.float32
+        np.testing.assert_allclose(got, expected.numpy(), rtol=0, atol=1e-5 * expected.abs().max())
+
+
+def test_frozen_mlp_splits_a_known_part_of_its_input_off():
+    torch.manual_seed(1)
+    layers = [torch.nn.Linear(5, 8), torch.nn.Linear(8, 2)]
+    frozen = FrozenMLP.from_layers(layers)
+    rng = np.random.default_rng(0)
+    a, c = rng.normal(size=(4, 3)).astype(np.float32), rng.normal(size=(4, 2)).astype(np.float32)
+    first, weight = frozen.split_input(3)
+    np.testing.assert_allclose(first(a, offset=c @ weight), frozen(np.hstack([a, c])), atol=1e-6)
+    with pytest.raises(
+        TypeError, match="cannot freeze a Sequential; expected NormalizedMLP or Linear"
+    ):
+        FrozenMLP.of(torch.nn.Sequential(*layers))
+
+
 def test_perturbed_forward_with_zero_deltas_matches_the_base_network():
     torch.manual_seed(0)
     network = NormalizedMLP(2, 5, 16, 3)
@@ -358,6 +396,45 @@ def test_zero_input_reproduces_the_autonomous_observer_exactly(fitted_family, na
         fitted_family[name].estimate(forced.t, forced.y, forced.u),
         fitted_family["autonomous_kkl"].estimate(forced.t, forced.y, forced.u),
     )
+
+
+def torch_injection(estimator, u):
+    """The injection of ``injection_kkl`` or ``static_hyperkkl`` evaluated by the torch
+    networks themselves, sample by sample (the path the frozen copies replaced)."""
+    model, gain = estimator.model_, estimator.gain_
+    encoder = model.encoder
+    if estimator.name == "injection_kkl":
+        g = torch.as_tensor(systems.get("duffing").g, dtype=torch.float32)
+
+        def injection(k, z):
+            x_hat = model.decoder(torch.as_tensor(z, dtype=torch.float32))
+            _, along_g = directional_derivative(encoder, x_hat, g.expand_as(x_hat))
+            return gain * u[:, k] * along_g.double().numpy()
+
+        return injection
+    windows = sliding_windows(u, estimator.config_.window)
+    contexts = estimator.injection_.window_encoder(windows.flatten(0, 1)).unflatten(0, u.shape[:2])
+
+    def injection(k, z):
+        z_tilde = encoder.normalized_output(torch.as_tensor(z, dtype=torch.float32))
+        psi = estimator.injection_(z_tilde, contexts[:, k]) @ encoder.out_coloring
+        return gain * u[:, k] * psi.double().numpy()
+
+    return injection
+
+
+@pytest.mark.parametrize("name", ["static_hyperkkl", "pure_injection_kkl"])
+def test_frozen_networks_give_the_torch_networks_estimates(fitted_family, name):
+    estimator = fitted_family[name]
+    data = duffing_data("sinusoid")
+    with torch.no_grad():
+        z = estimator.model_.observer.run(data.y, torch_injection(estimator, data.u))
+    reference = estimator.model_.decode(z)
+    estimate = estimator.estimate(data.t, data.y, data.u)
+    assert not np.array_equal(
+        reference, fitted_family["autonomous_kkl"].estimate(data.t, data.y, data.u)
+    )
+    np.testing.assert_allclose(estimate, reference, rtol=0, atol=1e-4 * np.abs(reference).max())
 
 
 def test_guarded_static_hyperkkl_uses_the_gain_with_the_best_validation_score(fitted_family):

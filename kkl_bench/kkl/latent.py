@@ -72,10 +72,6 @@ class LatentObserver:
         """``z0 = -A^{-1} B y0``, the equilibrium for a frozen output. ``y0: (batch, n_y)``."""
         return -np.linalg.solve(self.a, self.b @ y0.T).T
 
-    def step(self, z: np.ndarray, y: np.ndarray, y_next: np.ndarray) -> np.ndarray:
-        """``z: (batch, n_z)``, ``y, y_next: (batch, n_y)`` -> ``(batch, n_z)`` (no injection)."""
-        return z @ self.phi.T + y @ self.gamma0.T + (y_next - y) @ self.gamma1.T
-
     def run(
         self, y: np.ndarray, injection: Callable[[int, np.ndarray], np.ndarray] | None = None
     ) -> np.ndarray:
@@ -87,8 +83,9 @@ class LatentObserver:
         """
         z = np.empty((y.shape[0], y.shape[1], self.n_z))
         z[:, 0] = self.initial_state(y[:, 0])
+        drive = y[:, :-1] @ self.gamma0.T + np.diff(y, axis=1) @ self.gamma1.T
         for k in range(y.shape[1] - 1):
-            z[:, k + 1] = self.step(z[:, k], y[:, k], y[:, k + 1])
+            z[:, k + 1] = z[:, k] @ self.phi.T + drive[:, k]
             if injection is not None:
                 z[:, k + 1] += injection(k, z[:, k]) @ self.injection_gain.T
         return z
