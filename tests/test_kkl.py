@@ -404,7 +404,7 @@ def torch_injection(estimator, u):
     model, gain = estimator.model_, estimator.gain_
     encoder = model.encoder
     if estimator.name == "injection_kkl":
-        g = torch.as_tensor(systems.get("duffing").g, dtype=torch.float32)
+        g = torch.as_tensor(estimator.check_fitted().system.g, dtype=torch.float32)
 
         def injection(k, z):
             x_hat = model.decoder(torch.as_tensor(z, dtype=torch.float32))

@@ -1,0 +1,91 @@
+"""Online cost of every estimator's ``estimate``, side by side on one cell.
+
+Run with ``python -m pytest tests/benchmarks --benchmark-only``. Networks have
+the standard profile's sizes (what costs time online) but are trained for a
+few steps only (what they estimate does not matter here). Each benchmark
+records ``us_per_trajectory_step`` in its ``extra_info``; divide two rows of
+one run for a ratio (the machine is shared, absolute times drift). Everything
+runs on one thread, as each worker of ``kkl-bench run --jobs 2`` does on a
+2-core machine.
+"""
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from threadpoolctl import threadpool_limits
+
+from kkl_bench import variants
+from kkl_bench.harness import RunSpec, make_fit_context
+from kkl_bench.registry import estimators
+from kkl_bench.task import Task, get_profile, make_test_set
+
+SYSTEM, REGIME = "duffing", "sinusoid"
+FEW_STEPS = {
+    "train_trajectories": 16,
+    "encoder_steps": 50,
+    "decoder_steps": 50,
+    "selection_steps": 20,
+    "phase2_trajectories": 8,
+    "phase2_steps": 20,
+    "adaptation_steps": 20,
+    "adaptation_trajectories": 8,
+    "curriculum_epoch_steps": 10,
+    "max_epochs": 2,
+    "rnn_trajectories": 8,
+    "rnn_validation": 2,
+    "rnn_steps": 20,
+}
+LEARNED = sorted(set(estimators.names()) - {"ekf", "ukf"})
+BATCHES = {"ekf": (1, 20), "ukf": (1, 20)}
+"""Trajectories per call; the filters' loops are too slow for 1000 (learned: 1, 20, 1000)."""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with threadpool_limits(limits=1):
+        yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    spec = RunSpec(("ekf",), (SYSTEM,), (REGIME,), get_profile("standard"), cache_dir=Path(cache))
+    fitted = {}
+    for name in ["ekf", "ukf", *LEARNED]:
+        context = make_fit_context(spec, name, SYSTEM, 0)
+        context = dataclasses.replace(context, budget={**context.budget, **FEW_STEPS})
+        fitted[name] = variants.build(name).fit(context)
+    return fitted
+
+
+def batch_of(n: int):
+    """``(t, y, u)`` of ``n`` trajectories: the cell's 20 test trajectories, repeated."""
+    data = make_test_set(Task(SYSTEM, REGIME), 20).data
+    rows = np.arange(n) % 20
+    return data.t, data.y[rows], data.u[rows]
+
+
+@pytest.mark.parametrize(
+    ("name", "batch"),
+    [
+        (name, batch)
+        for name in ["ekf", "ukf", *LEARNED]
+        for batch in BATCHES.get(name, (1, 20, 1000))
+    ],
+)
+def test_estimate(benchmark, fitted, name, batch):
+    benchmark.group = f"estimate, {batch} trajectories"
+    t, y, u = batch_of(batch)
+    estimate = benchmark.pedantic(
+        fitted[name].estimate, (t, y, u), rounds=3 if batch < 1000 else 1, iterations=1
+    )
+    benchmark.extra_info["us_per_trajectory_step"] = (
+        benchmark.stats.stats.min / (batch * len(t)) * 1e6
+    )
+    assert estimate.shape == (batch, len(t), 2)
