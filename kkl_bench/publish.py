@@ -144,7 +144,8 @@ with its state). Fit times are the wall times of each fit where it ran
 networks are cached and shared: Phase 1 counts in the fit time of the first
 KKL estimator that trained it, and a variant that changes only how trained
 networks are used online (such as `[guard=True]`) shows only the time to load
-them.
+them; a fit resumed from its checkpoints after an interruption shows only
+the time since it resumed.
 
 {cost_table(summary)}
 

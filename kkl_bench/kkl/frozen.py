@@ -107,7 +107,7 @@ class FrozenMLP:
             if i == 0 and offset is not None:
                 h += offset
             if i < last:
-                h = _silu_and_slope(h)[0]
+                h = h * expit(h)
         return h
 
     def with_tangent(self, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
