@@ -87,7 +87,13 @@ def cell_files(results):
 
 def start_and_stop_part_way(results, sig):
     process = subprocess.Popen(
-        run_command(results), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        run_command(results),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        # a test run started in the background of a non-interactive shell ignores
+        # SIGINT, and the child would inherit that; give it the default handling
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.monotonic() + 120
     while len(cell_files(results)) < 4:
