@@ -11,10 +11,12 @@ half forced by :data:`~kkl_bench.kkl.inputs.FORCED_TRAINING` (the KKL plugins'
 training families). Training is truncated backpropagation through time in
 sweeps: ``rnn_batch`` trajectories are walked from ``t = 0`` in consecutive
 windows of ``rnn_window`` samples, one Adam step per window, the hidden state
-carried from window to window as it is at test time. The model is cached and its training checkpointed like the
-KKL models (:func:`kkl_bench.kkl.optimize.resumable`); the fit report records
-the steps, samples and the RMSE on validation trajectories of a separate
-training stream.
+carried from window to window as it is at test time. The model is cached and
+its training checkpointed like the KKL models
+(:func:`kkl_bench.kkl.phase2.load_or_train`,
+:func:`kkl_bench.kkl.optimize.resumable`); the fit report records the steps,
+samples and the RMSE on validation trajectories of a separate training
+stream.
 """
 
 from __future__ import annotations
@@ -26,12 +28,12 @@ import torch
 from torch import nn
 
 from kkl_bench.estimator import Estimator, FitContext
-from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.gain import simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.optimize import counting, minimize, resumable
+from kkl_bench.kkl.optimize import minimize, resumable
+from kkl_bench.kkl.phase2 import load_or_train
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.metrics import rmse
 from kkl_bench.registry import estimators, regimes
@@ -118,17 +120,18 @@ def _train(
     count, steps = yu.shape[:2]
     window = min(config.rnn_window, steps)
     per_sweep = steps // window
-    carried = {"sweep": None, "state": None}
+    carried = {"sweep": None, "rows": None, "state": None}
 
     def loss(step):
         sweep, position = divmod(step, per_sweep)
-        rows = torch.as_tensor(np.random.default_rng([seed, sweep]).choice(count, config.rnn_batch))
         start = position * window
         if carried["sweep"] != sweep:  # a new sweep, or resumed inside one
-            carried["sweep"], carried["state"] = sweep, None
+            choice = np.random.default_rng([seed, sweep]).choice(count, config.rnn_batch)
+            carried.update(sweep=sweep, rows=torch.as_tensor(choice), state=None)
             if start:
                 with torch.no_grad():
-                    carried["state"] = network.normalized(yu[rows, :start])[1]
+                    carried["state"] = network.normalized(yu[carried["rows"], :start])[1]
+        rows = carried["rows"]
         out, state = network.normalized(yu[rows, start : start + window], carried["state"])
         carried["state"] = (
             tuple(s.detach() for s in state) if isinstance(state, tuple) else state.detach()
@@ -143,6 +146,25 @@ def _train(
         lr=config.rnn_lr,
         description=label,
     )
+
+
+def _fit(context: FitContext, network: RecurrentObserver, config, description) -> dict:
+    """Train ``network`` on the training families; the training log with its validation RMSE."""
+    families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
+    x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
+    yu, x = _inputs(y, u), torch.as_tensor(x, dtype=torch.float32)
+    network.set_normalization(yu, x)
+    with resumable(context.cache_dir, description, []):
+        losses = _train(network, yu, x, config, context.seed, f"{context.system.name}: {KIND}")
+    x_val, y_val, u_val = simulate_families(
+        context, families, config.rnn_validation, "rnn/validation"
+    )
+    with torch.no_grad():
+        x_hat, _ = network(_inputs(y_val, u_val))
+    return {
+        "final_loss": float(np.mean(losses[-100:])),
+        "validation_rmse": float(rmse(x_val, x_hat.double().numpy()).mean()),
+    }
 
 
 @estimators.register("gru_observer")
@@ -177,37 +199,11 @@ class GRUObserver(Estimator):
             "cell": self.cell,
             "config": asdict(config),
         }
-        cache = CheckpointCache(context.cache_dir)
-        with cache.claim(KIND, description):
-            stored = cache.load(KIND, description)
-            if stored is None:
-                stored = self._train(context, network, config, description)
-                cache.save(KIND, description, stored)
-        network.load_state_dict(stored["state"])
-        network.requires_grad_(False)
-        self.network_ = network
-        self.log_ = stored["log"]
-        return super().fit(context)
-
-    @staticmethod
-    def _train(context, network, config, description) -> dict:
-        families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
-        x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
-        yu, x = _inputs(y, u), torch.as_tensor(x, dtype=torch.float32)
-        network.set_normalization(yu, x)
-        with counting() as spent, resumable(context.cache_dir, description, []):
-            losses = _train(network, yu, x, config, context.seed, f"{context.system.name}: {KIND}")
-        x_val, y_val, u_val = simulate_families(
-            context, families, config.rnn_validation, "rnn/validation"
+        self.log_ = load_or_train(
+            context, description, network, lambda: _fit(context, network, config, description)
         )
-        with torch.no_grad():
-            x_hat, _ = network(_inputs(y_val, u_val))
-        log = {
-            "final_loss": float(np.mean(losses[-100:])),
-            "validation_rmse": float(rmse(x_val, x_hat.double().numpy()).mean()),
-            "spent": spent.as_dict(),
-        }
-        return {"state": network.state_dict(), "log": log}
+        self.network_ = network
+        return super().fit(context)
 
     def estimate(self, t, y, u):
         self.check_fitted()
