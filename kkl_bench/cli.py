@@ -17,18 +17,22 @@ from tqdm import tqdm
 from kkl_bench import harness, leaderboard, variants
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.executors import EXECUTORS
+from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
 from kkl_bench.results import DamagedCellError, load_results
 from kkl_bench.task import ProfileError, get_profile, load_profiles
+from kkl_bench.tracks import get_track, load_tracks
 
 EXAMPLES = """\
 examples:
   kkl-bench list
   kkl-bench run --estimator ukf --profile quick
   kkl-bench run --estimator ekf --system duffing vdp --regime sinusoid square
+  kkl-bench run --estimator all --track ood-inputs noise far-init --profile standard
   kkl-bench run --estimator dynamic_hyperkkl 'static_hyperkkl[guard=True]' --seed 0 1 2
   kkl-bench leaderboard --with-paper
   kkl-bench leaderboard --format latex > table.tex
+  kkl-bench leaderboard --track far-init
   kkl-bench publish --results leaderboard/results --out leaderboard
   kkl-bench compare dynamic_hyperkkl autonomous_kkl --results leaderboard/results
   kkl-bench plot --results results --out figures
@@ -115,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    commands.add_parser("list", help="list systems, regimes, estimators and profiles")
+    commands.add_parser("list", help="list systems, regimes, estimators, tracks and profiles")
 
     run = commands.add_parser(
         "run",
@@ -132,7 +136,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--system", nargs="+", metavar="NAME", help="systems to run (default: all)")
     run.add_argument(
-        "--regime", nargs="+", metavar="NAME", help="input regimes to score (default: all)"
+        "--track",
+        nargs="+",
+        default=[PAPER_TRACK],
+        metavar="NAME",
+        help="tracks to score on, or 'all' (default: paper); estimators are fitted once "
+        "and scored on every track",
+    )
+    run.add_argument(
+        "--regime",
+        nargs="+",
+        metavar="NAME",
+        help="tasks of the tracks to score, e.g. sinusoid or chirp (default: all)",
     )
     run.add_argument("--profile", default="quick", help="profile: quick (default) or standard")
     run.add_argument(
@@ -170,6 +185,13 @@ def build_parser() -> argparse.ArgumentParser:
     board.add_argument("--format", choices=leaderboard.FORMATS, default="markdown")
     _add_reading_arguments(board)
     board.add_argument(
+        "--track",
+        default=PAPER_TRACK,
+        metavar="NAME",
+        help="the track to tabulate (default: paper), or 'summary' for every track's RMSE "
+        "relative to the paper track's",
+    )
+    board.add_argument(
         "--with-paper",
         action="store_true",
         help="add the HyperKKL paper's numbers as reference rows",
@@ -196,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     versus.add_argument("a", metavar="A", help="estimator (or variant) name")
     versus.add_argument("b", metavar="B", help="estimator (or variant) name")
     _add_reading_arguments(versus)
+    versus.add_argument(
+        "--track", default=PAPER_TRACK, metavar="NAME", help="the track (default: paper)"
+    )
 
     publish = commands.add_parser(
         "publish",
@@ -230,6 +255,11 @@ def _list() -> int:
         print(f"{registry.kind}s: {', '.join(registry.names())}")
         for name, reason in registry.failures().items():
             print(f"  (failed to load {name}: {reason})")
+    for track in load_tracks().values():
+        print(
+            f"track {track.name}@v{track.version} ({len(track.tasks)} tasks x "
+            f"{len(track.systems)} systems: {', '.join(track.task_names())}): {track.description}"
+        )
     for profile in load_profiles().values():
         print(f"profile {profile.name}: {profile.description}")
     return 0
@@ -239,16 +269,15 @@ def _run(args: argparse.Namespace) -> int:
     spec = harness.RunSpec(
         estimators=_names(estimators, args.estimator),
         systems=_names(systems, args.system),
-        regimes=_names(regimes, args.regime),
+        regimes=tuple(dict.fromkeys(args.regime)) if args.regime else None,
+        tracks=tuple(load_tracks()) if args.track == ["all"] else tuple(args.track),
         profile=get_profile(args.profile),
         seeds=tuple(args.seed),
         results_dir=args.results,
         cache_dir=args.cache or default_cache_dir(),
         force=args.force,
     )
-    total = sum(len(spec.seeds_for(name)) for name in spec.estimators) * (
-        len(spec.systems) * len(spec.regimes)
-    )
+    total = sum(len(spec.seeds_for(name)) for name in spec.estimators) * len(spec.tasks())
     with tqdm(
         total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0
     ) as bar:
@@ -316,18 +345,41 @@ def _status(args: argparse.Namespace, damaged: list[DamagedCellError]) -> int:
 
 def _leaderboard(args: argparse.Namespace) -> int:
     results, damaged = _load(args, check_versions=not args.by_version)
+    if args.track == "summary":
+        frame = leaderboard.track_summary(results)
+        print(
+            frame.to_csv(index=False, float_format="%.6g")
+            if args.format == "csv"
+            else leaderboard.render_track_summary(frame)
+        )
+        return _status(args, damaged)
+    settling = get_track(args.track).settling
+    results = _of_track(results, args.track)
+    with_paper = args.with_paper and args.track == PAPER_TRACK
     for label, cells in leaderboard.version_groups(results).items():
         if label:
             print(f"\n{label}\n" if args.format == "markdown" else f"# {label}")
-        summary = leaderboard.summary_table(cells, with_paper=args.with_paper)
-        print(leaderboard.render(summary, args.format), end="")
+        summary = leaderboard.summary_table(cells, with_paper=with_paper)
+        print(leaderboard.render(summary, args.format, settling=settling), end="")
         if args.details:
             print("\n" + leaderboard.cost_table(summary))
     return _status(args, damaged)
 
 
+def _of_track(results: pd.DataFrame, track: str) -> pd.DataFrame:
+    """The cells of ``track``; the error names the tracks the results hold."""
+    selected = results[results["track"] == track]
+    if selected.empty:
+        raise ValueError(
+            f"no results for track {track!r}; the results hold "
+            f"{', '.join(sorted(set(results['track'])))} (run with --track {track})"
+        )
+    return selected
+
+
 def _compare(args: argparse.Namespace) -> int:
     results, damaged = _load(args)
+    results = _of_track(results, args.track)
     print(leaderboard.comparison_table(leaderboard.summary_table(results), args.a, args.b))
     return _status(args, damaged)
 
@@ -345,7 +397,7 @@ def _plot(args: argparse.Namespace) -> int:
     from kkl_bench.publish import draw_figures
 
     results, damaged = _load(args)
-    summary = leaderboard.summary_table(results)
+    summary = leaderboard.summary_table(_of_track(results, PAPER_TRACK))
     names = draw_figures(summary, args.results, args.profile, args.out)
     print(f"wrote {2 * len(names)} figures to {args.out / 'figures'}/")
     return _status(args, damaged)

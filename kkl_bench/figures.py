@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kkl_bench.leaderboard import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES
+from kkl_bench.leaderboard import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, task_order
 from kkl_bench.results import KeptEstimate
 
 REFERENCE = "ukf"
@@ -97,17 +97,20 @@ def trajectory_figure(title: str, kept: Mapping[str, KeptEstimate]):
     return figure
 
 
-def relative_rmse_heatmap(summary: pd.DataFrame):
-    """Heat map of each estimator's mean RMSE over the UKF's per cell (log colour scale)."""
+def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
+    """Heat map of each estimator's mean RMSE over the UKF's per cell (log colour scale).
+
+    ``summary`` holds one track's cells; ``title`` prefixes the figure's title.
+    """
     plt = pyplot()
     from matplotlib.colors import LogNorm
 
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    regimes = task_order(ours)
+    systems = [s for s in SYSTEM_TITLES if s in set(ours["system"])]
+    systems += sorted(set(ours["system"]) - set(systems))
     cells = [
-        (s, r)
-        for s in SYSTEM_TITLES
-        for r in REGIME_TITLES
-        if ((ours.system == s) & (ours.regime == r)).any()
+        (s, r) for s in systems for r in regimes if ((ours.system == s) & (ours.regime == r)).any()
     ]
     table = ours.set_index(["estimator", "system", "regime"])["rmse_mean"]
     names = sorted(set(ours["estimator"]))
@@ -118,7 +121,7 @@ def relative_rmse_heatmap(summary: pd.DataFrame):
                 ratios[i, j] = table[name, system, regime] / table[REFERENCE, system, regime]
     finite = ratios[np.isfinite(ratios)]
     figure, axis = plt.subplots(
-        figsize=(1.0 + 0.62 * len(cells), 1.0 + 0.42 * len(names)), constrained_layout=True
+        figsize=(2.5 + 0.62 * len(cells), 2.2 + 0.42 * len(names)), constrained_layout=True
     )
     norm = (
         LogNorm(vmin=max(finite.min(), 0.5), vmax=max(finite.max(), 2.0)) if finite.size else None
@@ -133,12 +136,14 @@ def relative_rmse_heatmap(summary: pd.DataFrame):
             axis.text(j, i, text, ha="center", va="center", fontsize=7)
     axis.set_xticks(
         range(len(cells)),
-        [f"{SYSTEM_TITLES[s]} {REGIME_TITLES[r]}" for s, r in cells],
+        [f"{SYSTEM_TITLES.get(s, s)} {REGIME_TITLES.get(r, r)}" for s, r in cells],
         rotation=60,
         ha="right",
     )
     axis.set_yticks(range(len(names)), names)
-    axis.set_title(f"RMSE relative to the {REFERENCE.upper()} (mean over seeds; 1 = as good)")
+    axis.set_title(
+        f"{title}RMSE relative to the {REFERENCE.upper()} (mean over seeds; 1 = as good)"
+    )
     figure.colorbar(image, ax=axis, label=f"RMSE / RMSE of {REFERENCE}")
     return figure
 

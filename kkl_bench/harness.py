@@ -1,8 +1,9 @@
 """Runs estimators over the benchmark grid and records every cell as it finishes.
 
 For each (estimator, system, seed) the harness builds the estimator, fits it
-once with a :class:`~kkl_bench.estimator.FitContext`, then scores it on the
-requested regimes' test sets. Each cell is written atomically the moment it
+once with a :class:`~kkl_bench.estimator.FitContext` (the paper's noise, x0
+box and horizon, whatever the tracks), then scores it on the test sets of
+every requested track's tasks: tracks test generalization, never retraining. Each cell is written atomically the moment it
 is scored, with the truth and the estimate of its first test trajectory
 beside it; a cell already on disk is skipped unless ``force`` is set.
 Estimators that do not depend on the seed run with the first seed only. An
@@ -26,8 +27,9 @@ from kkl_bench.cache import default_cache_dir
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import execute
 from kkl_bench.protocol import DT, N_SAMPLES, PROTOCOL_ID, SIGMA_V, SIGMA_W
-from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, smape
-from kkl_bench.registry import estimators, regimes, systems
+from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, settling_time, smape
+from kkl_bench.protocol.streams import PAPER_TRACK
+from kkl_bench.registry import estimators, systems
 from kkl_bench.results import (
     CellResult,
     DamagedCellError,
@@ -41,6 +43,7 @@ from kkl_bench.results import (
     write_cell,
 )
 from kkl_bench.task import Profile, Task, TestSet, make_test_set
+from kkl_bench.tracks import TrackError, get_track
 from kkl_bench.training import TrainingData
 
 WARM_UP_STEPS = 20
@@ -53,31 +56,46 @@ class RunSpec:
 
     ``estimators`` are registered names or variants of them
     (``static_hyperkkl[guard=True]``, see :mod:`kkl_bench.variants`); they are
-    stored in their canonical spelling.
+    stored in their canonical spelling. ``regimes`` are task names of the
+    ``tracks`` (each must belong to at least one), or None for all of them.
     """
 
     estimators: tuple[str, ...]
     systems: tuple[str, ...]
-    regimes: tuple[str, ...]
+    regimes: tuple[str, ...] | None
     profile: Profile
     seeds: tuple[int, ...] = (0,)
     results_dir: Path = Path("results")
     cache_dir: Path = field(default_factory=default_cache_dir)
     force: bool = False
+    tracks: tuple[str, ...] = (PAPER_TRACK,)
 
     def __post_init__(self) -> None:
-        for registry, names in (
-            (estimators, self.estimators),
-            (systems, self.systems),
-            (regimes, self.regimes),
-        ):
-            if not names:
-                raise ValueError(f"no {registry.kind}s selected")
-            if registry is estimators:
-                continue
-            for name in names:
-                if name not in registry:
-                    registry.get(name)  # raises the error listing the valid names
+        if not self.estimators:
+            raise ValueError("no estimators selected")
+        if not self.systems:
+            raise ValueError("no systems selected")
+        for name in self.systems:
+            if name not in systems:
+                systems.get(name)  # raises the error listing the valid names
+        if not self.tracks:
+            raise ValueError("no tracks selected")
+        tracks = [get_track(name) for name in self.tracks]
+        if self.regimes is not None:
+            if not self.regimes:
+                raise ValueError("no regimes selected")
+            names = {name for track in tracks for name in track.task_names()}
+            for regime in self.regimes:
+                if regime not in names:
+                    raise TrackError(
+                        f"unknown regime {regime!r} for track(s) {', '.join(self.tracks)}; "
+                        f"valid regimes: {', '.join(sorted(names))}"
+                    )
+        if not self.tasks():
+            raise ValueError(
+                f"track(s) {', '.join(self.tracks)} have no task for system(s) "
+                f"{', '.join(self.systems)}"
+            )
         if not self.seeds:
             raise ValueError("no seeds selected")
         if any(seed < 0 for seed in self.seeds):
@@ -85,6 +103,21 @@ class RunSpec:
         canonical = tuple(dict.fromkeys(variants.canonical(name) for name in self.estimators))
         object.__setattr__(self, "estimators", canonical)
         object.__setattr__(self, "seeds", tuple(dict.fromkeys(self.seeds)))
+        object.__setattr__(self, "tracks", tuple(dict.fromkeys(self.tracks)))
+
+    def tasks(self, system: str | None = None) -> list[Task]:
+        """The selected tasks (of ``system``, or of every selected system), track by track."""
+        selected = []
+        for track in map(get_track, self.tracks):
+            for name in self.systems if system is None else (system,):
+                if name not in track.systems:
+                    continue
+                selected += [
+                    Task(name, task, track.version, track.name)
+                    for task in track.task_names()
+                    if self.regimes is None or task in self.regimes
+                ]
+        return selected
 
     def seeds_for(self, estimator: str) -> tuple[int, ...]:
         """The seeds ``estimator`` runs with: all, or the first if it ignores the seed."""
@@ -130,6 +163,7 @@ def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
     the estimate has the wrong shape.
     """
     data = test_set.data
+    dt = float(data.t[1] - data.t[0])
     estimator.estimate(
         data.t[:WARM_UP_STEPS], data.y[:1, :WARM_UP_STEPS].copy(), data.u[:1, :WARM_UP_STEPS].copy()
     )
@@ -145,6 +179,7 @@ def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
         "smape": smape(data.x, x_hat).tolist(),
         "nrmse": nrmse(data.x, x_hat, test_set.state_scale).tolist(),
         "per_state_rmse": per_state_rmse(data.x, x_hat).tolist(),
+        "settling_time_s": settling_time(data.x, x_hat, test_set.state_scale, dt).tolist(),
         "estimate_us_per_step": 1e6 * elapsed / (x_hat.shape[0] * x_hat.shape[1]),
     }
     return metrics, KeptEstimate(t=data.t, x=data.x[0], x_hat=x_hat[0])
@@ -158,6 +193,7 @@ def _cell(spec: RunSpec, name: str, params: dict, task: Task, seed: int, **field
         system=task.system,
         regime=task.regime,
         task=task.id,
+        track=task.track,
         profile=spec.profile.name,
         seed=seed,
         n_test=spec.profile.n_test,
@@ -175,15 +211,15 @@ def _error_text(error: BaseException) -> str:
 
 
 def run_system(
-    spec: RunSpec, estimator_name: str, system: str, regime_names: Iterable[str], seed: int
+    spec: RunSpec, estimator_name: str, system: str, tasks: Iterable[Task], seed: int
 ) -> Iterator[CellResult]:
-    """Fit ``estimator_name`` on ``system`` with ``seed`` once and score it on each regime,
+    """Fit ``estimator_name`` on ``system`` with ``seed`` once and score it on each task,
     yielding cells.
 
     Each cell is written to ``spec.results_dir`` before it is yielded.
     """
     estimator = variants.build(estimator_name)
-    tasks = [Task(system, regime) for regime in regime_names]
+    tasks = list(tasks)
     start = time.perf_counter()
     try:
         estimator.fit(make_fit_context(spec, estimator_name, system, seed))
@@ -226,11 +262,11 @@ def run_system(
 
 @dataclass(frozen=True)
 class Job:
-    """One unit of work: fit ``estimator`` on ``system`` with ``seed`` once, score it on ``regimes``."""
+    """One unit of work: fit ``estimator`` on ``system`` with ``seed`` once, score it on ``tasks``."""
 
     estimator: str
     system: str
-    regimes: tuple[str, ...]
+    tasks: tuple[Task, ...]
     seed: int = 0
 
 
@@ -251,19 +287,21 @@ def run_job(spec: RunSpec, job: Job) -> JobOutcome:
     waits, then scores only the cells still missing.
     """
     with claim(spec.results_dir, job.estimator, job.system, spec.profile.name, job.seed):
-        done = {r: _done(spec, job.estimator, job.system, r, job.seed) for r in job.regimes}
-        todo = [regime for regime, cell in done.items() if cell is None]
+        done = {task: _done(spec, job.estimator, task, job.seed) for task in job.tasks}
+        todo = [task for task, cell in done.items() if cell is None]
         scored = list(run_system(spec, job.estimator, job.system, todo, job.seed)) if todo else []
     return JobOutcome(job, scored, [cell for cell in done.values() if cell is not None])
 
 
-def _done(spec: RunSpec, estimator: str, system: str, regime: str, seed: int) -> CellResult | None:
+def _done(spec: RunSpec, estimator: str, task: Task, seed: int) -> CellResult | None:
     """The finished cell on disk, or None if it is to be (re)computed.
 
     A damaged cell file is moved aside (``<name>.corrupt``) with a warning
     naming it and the reason, and the cell is recomputed.
     """
-    path = cell_path(spec.results_dir, estimator, system, regime, spec.profile.name, seed)
+    path = cell_path(
+        spec.results_dir, estimator, task.system, task.regime, spec.profile.name, seed, task.track
+    )
     if spec.force or not path.exists():
         return None
     try:
@@ -287,10 +325,10 @@ def plan(spec: RunSpec) -> tuple[list[Job], list[CellResult]]:
         for seed in spec.seeds_for(estimator):
             for system in spec.systems:
                 todo = []
-                for regime in spec.regimes:
-                    done = _done(spec, estimator, system, regime, seed)
+                for task in spec.tasks(system):
+                    done = _done(spec, estimator, task, seed)
                     if done is None:
-                        todo.append(regime)
+                        todo.append(task)
                     else:
                         cached.append(done)
                 if todo:
@@ -301,14 +339,14 @@ def plan(spec: RunSpec) -> tuple[list[Job], list[CellResult]]:
 def _lost_cells(spec: RunSpec, job: Job, error: BaseException) -> list[CellResult]:
     """Cells of ``job`` after its worker died: those it wrote, the rest as errors (written)."""
     cells = []
-    for regime in job.regimes:
-        done = _done(spec, job.estimator, job.system, regime, job.seed)
+    for task in job.tasks:
+        done = _done(spec, job.estimator, task, job.seed)
         if done is None:
             done = _cell(
                 spec,
                 job.estimator,
                 {},
-                Task(job.system, regime),
+                task,
                 job.seed,
                 status="error",
                 error=f"not completed: the run stopped ({type(error).__name__}: {error})",

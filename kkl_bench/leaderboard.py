@@ -8,8 +8,11 @@ of those over the seeds, ``±`` their standard deviation over the seeds
 :mod:`kkl_bench.significance`: **bold** where the lowest RMSE beats every
 other entry of its column by a paired bootstrap at 5 %, *italic* for the
 entries tied with the lowest (not distinguishable from it). A cell where some
-trajectory diverged reads ``diverged (k/n)`` (over all seeds); a cell whose
-estimator failed reads ``error``. The paper's published numbers can be shown
+trajectory diverged reads ``diverged (k/n), median m`` (over all seeds, with
+the median RMSE of all its trajectories); a cell whose estimator failed reads
+``error``. Tables show one track at a time (callers select its cells);
+tracks that declare it add the settling time beside each RMSE, and
+:func:`track_summary` compares each track with the paper track. The paper's published numbers can be shown
 as reference rows (never marked: they come from other test sets). Nothing
 here recomputes a metric: it reads what the harness recorded.
 """
@@ -25,8 +28,10 @@ import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
+from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.results import mean_and_std
 from kkl_bench.significance import compare, mark_column
+from kkl_bench.tracks import TrackError, get_track
 
 FORMATS = ("markdown", "latex", "csv")
 PAPER_PREFIX = "paper:"
@@ -129,7 +134,10 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
     n_diverged (over all seeds), rmse_mean and rmse_seed_std (mean and
     standard deviation over seeds of the per-seed mean RMSE), smape_mean,
     smape_seed_std, nrmse_mean, fit_time_s, estimate_us_per_step (means over
-    seeds), task, protocol, map quality, the steps and samples spent
+    seeds), rmse_median (over all trajectories of all seeds), settling_median_s
+    and n_unsettled (median settling time over all trajectories and how many
+    never settled; NaN and 0 for cells recorded without settling times), task,
+    track, protocol, map quality, the steps and samples spent
     (``phase1_steps`` ...), ``mark`` (``best``, ``tied`` or empty, see
     :mod:`kkl_bench.significance`) and ``rmse_trajectories`` (per seed, per
     trajectory; ``(n_seeds, n_test)`` nested lists, not written to CSV).
@@ -144,6 +152,8 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
         rmse_by_seed = [list(values) for values in scored["rmse"]]
         rmse_mean, rmse_std = _seed_mean_and_std([mean_and_std(v)[0] for v in rmse_by_seed])
         smape_mean, smape_std = _seed_mean_and_std([mean_and_std(v)[0] for v in scored["smape"]])
+        pooled = [value for values in rmse_by_seed for value in values]
+        settling = [value for values in scored.get("settling_time_s", []) for value in values]
         rows.append(
             {
                 "estimator": estimator,
@@ -160,7 +170,11 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
                 "nrmse_mean": _seed_mean_and_std([mean_and_std(v)[0] for v in scored["nrmse"]])[0],
                 "fit_time_s": scored["fit_time_s"].mean(),
                 "estimate_us_per_step": scored["estimate_us_per_step"].mean(),
+                "rmse_median": float(np.median(pooled)) if pooled else math.nan,
+                "settling_median_s": float(np.median(settling)) if settling else math.nan,
+                "n_unsettled": sum(not math.isfinite(value) for value in settling),
                 "task": cells["task"].iloc[0],
+                "track": cells["track"].iloc[0] if "track" in cells else PAPER_TRACK,
                 "protocol": cells["protocol"].iloc[0],
                 **_map_quality(cells),
                 **_spent(cells),
@@ -212,7 +226,10 @@ def _format_cell(row: pd.Series, markup: dict[str, tuple[str, str]]) -> str:
     if row["status"] != "ok":
         return "error"
     if row["n_diverged"]:
-        return f"diverged ({row['n_diverged']}/{row['n_test'] * row['n_seeds']})"
+        return (
+            f"diverged ({row['n_diverged']}/{row['n_test'] * row['n_seeds']}), "
+            f"median {row['rmse_median']:.3g}"
+        )
     rmse = f"{row['rmse_mean']:.3g}"
     mark = row.get("mark", "")
     if mark:
@@ -232,21 +249,39 @@ def _seeds(rows: pd.DataFrame) -> str:
     return str(low) if low == high else f"{low}-{high}"
 
 
+def _format_settling(row: pd.Series) -> str:
+    """Median settling time in s, with how many trajectories never settled."""
+    if row["status"] != "ok" or not math.isfinite(row["settling_median_s"]):
+        never = row.get("n_unsettled", 0)
+        return f"never ({never}/{row['n_test'] * row['n_seeds']})" if never else "-"
+    text = f"{row['settling_median_s']:.2g}"
+    if row["n_unsettled"]:
+        text += f" ({row['n_unsettled']}/{row['n_test'] * row['n_seeds']} never)"
+    return text
+
+
 def _grid(
     summary: pd.DataFrame,
     systems: Sequence[str],
     regimes: Sequence[str],
     markup: dict[str, tuple[str, str]],
     escape: Callable[[str], str] = str,
+    settling: bool = False,
 ) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of one table over ``systems`` x ``regimes``; ``escape`` quotes labels."""
+    """Header and rows of one table over ``systems`` x ``regimes``; ``escape`` quotes labels.
+
+    With ``settling``, every RMSE column is followed by a settling-time column.
+    """
     estimators = list(dict.fromkeys(summary["estimator"]))
     indexed = summary.set_index(["estimator", "system", "regime"])
-    header = ["Estimator", "Seeds"] + [
-        escape(f"{SYSTEM_TITLES.get(s, s)} {REGIME_TITLES.get(r, r)}")
-        for s in systems
-        for r in regimes
-    ]
+    header = ["Estimator", "Seeds"]
+    for system in systems:
+        for regime in regimes:
+            header.append(
+                escape(f"{SYSTEM_TITLES.get(system, system)} {REGIME_TITLES.get(regime, regime)}")
+            )
+            if settling:
+                header.append("settle (s)")
     rows = []
     for estimator in estimators:
         own = summary[summary["estimator"] == estimator]
@@ -254,7 +289,10 @@ def _grid(
         for system in systems:
             for regime in regimes:
                 key = (estimator, system, regime)
-                row.append(_format_cell(indexed.loc[key], markup) if key in indexed.index else "-")
+                found = key in indexed.index
+                row.append(_format_cell(indexed.loc[key], markup) if found else "-")
+                if settling:
+                    row.append(_format_settling(indexed.loc[key]) if found else "-")
         rows.append(row)
     return header, rows
 
@@ -265,15 +303,34 @@ def _in_paper_order(names: pd.Series, known: dict[str, str]) -> list[str]:
     return [name for name in known if name in present] + sorted(present - set(known))
 
 
+def task_order(summary: pd.DataFrame) -> list[str]:
+    """The regimes (tasks) of ``summary``, one track's, in its track file's order (the
+    paper's order for the paper track; sorted if the track is not installed here)."""
+    present = set(summary["regime"])
+    track = summary["track"].iloc[0] if "track" in summary else PAPER_TRACK
+    try:
+        declared = get_track(track).task_names()
+    except TrackError:
+        declared = list(REGIME_TITLES)
+    return [name for name in declared if name in present] + sorted(present - set(declared))
+
+
 def _chunks(items: Sequence[str], size: int) -> list[Sequence[str]]:
     return [items[i : i + size] for i in range(0, len(items), size)]
 
 
-def render(summary: pd.DataFrame, fmt: str = "markdown", systems_per_table: int = 2) -> str:
-    """The leaderboard of ``summary`` (from :func:`summary_table`) as text.
+def render(
+    summary: pd.DataFrame,
+    fmt: str = "markdown",
+    systems_per_table: int | None = None,
+    settling: bool = False,
+) -> str:
+    """The leaderboard of ``summary`` (from :func:`summary_table`, one track) as text.
 
     ``fmt`` is ``"markdown"`` (GitHub tables), ``"latex"`` (booktabs tabulars)
-    or ``"csv"`` (the summary itself, one row per estimator x cell).
+    or ``"csv"`` (the summary itself, one row per estimator x cell). Tables
+    hold ``systems_per_table`` systems (default: as many as keep about eight
+    result columns); ``settling`` adds the settling-time columns.
     """
     if fmt not in FORMATS:
         raise ValueError(f"unknown format {fmt!r}; valid formats: {', '.join(FORMATS)}")
@@ -284,14 +341,18 @@ def render(summary: pd.DataFrame, fmt: str = "markdown", systems_per_table: int 
             index=False, float_format="%.6g"
         )
     systems = _in_paper_order(summary["system"], SYSTEM_TITLES)
-    regimes = _in_paper_order(summary["regime"], REGIME_TITLES)
+    regimes = task_order(summary)
+    if systems_per_table is None:
+        systems_per_table = max(1, 8 // (len(regimes) * (2 if settling else 1)))
     tables = []
     for group in _chunks(systems, systems_per_table):
         if fmt == "markdown":
-            header, rows = _grid(summary, group, regimes, MARKUP["markdown"])
+            header, rows = _grid(summary, group, regimes, MARKUP["markdown"], settling=settling)
             tables.append(tabulate(rows, headers=header, tablefmt="github", disable_numparse=True))
         else:
-            header, rows = _grid(summary, group, regimes, MARKUP["latex"], _latex_escape)
+            header, rows = _grid(
+                summary, group, regimes, MARKUP["latex"], _latex_escape, settling=settling
+            )
             tables.append(
                 _booktabs(
                     tabulate(rows, headers=header, tablefmt="latex_raw", disable_numparse=True)
@@ -430,3 +491,89 @@ def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
         tablefmt="github",
         disable_numparse=True,
     )
+
+
+def _finite_mean(rmse_trajectories: list[list[float]]) -> float:
+    """Mean RMSE over the trajectories (of all seeds) that did not diverge."""
+    values = [v for seed in rmse_trajectories for v in seed if math.isfinite(v)]
+    return float(np.mean(values)) if values else math.nan
+
+
+def _reference(track: str, regime: str) -> str:
+    """The paper task ``track``'s task ``regime`` is compared with (its own name if the
+    track is not installed here)."""
+    try:
+        return get_track(track).task(regime).reference
+    except TrackError:
+        return regime
+
+
+def track_summary(results: pd.DataFrame) -> pd.DataFrame:
+    """Per estimator and track: RMSE relative to the estimator's own paper-track RMSE.
+
+    For each of the track's cells, the mean RMSE over its non-diverged
+    trajectories (all seeds) divided by the same estimator's mean paper-track
+    RMSE on the same system under the task's reference regime (declared in
+    the track file); ``ratio`` is the geometric mean of these over the
+    track's cells. ``n_diverged`` and ``n_trajectories`` count the track's
+    diverged and scored trajectories. Columns: estimator, track, ratio,
+    n_cells, n_diverged, n_trajectories.
+    """
+    if "track" not in results:
+        results = results.assign(track=PAPER_TRACK)
+    per_track = {
+        track: summary_table(cells) for track, cells in results.groupby("track", sort=False)
+    }
+    if PAPER_TRACK not in per_track:
+        raise ValueError("the results hold no paper-track cells to compare the tracks with")
+    paper = per_track[PAPER_TRACK].set_index(["estimator", "system", "regime"])
+    rows = []
+    for track, summary in per_track.items():
+        if track == PAPER_TRACK:
+            continue
+        for estimator, cells in summary.groupby("estimator", sort=False):
+            ratios, diverged, scored = [], 0, 0
+            for cell in cells[cells["status"] == "ok"].itertuples():
+                diverged += cell.n_diverged
+                scored += cell.n_test * cell.n_seeds
+                key = (estimator, cell.system, _reference(track, cell.regime))
+                if key not in paper.index or paper.loc[key, "status"] != "ok":
+                    continue
+                ratio = _finite_mean(cell.rmse_trajectories) / _finite_mean(
+                    paper.loc[key, "rmse_trajectories"]
+                )
+                if math.isfinite(ratio) and ratio > 0:
+                    ratios.append(ratio)
+            rows.append(
+                {
+                    "estimator": estimator,
+                    "track": track,
+                    "ratio": float(np.exp(np.mean(np.log(ratios)))) if ratios else math.nan,
+                    "n_cells": len(ratios),
+                    "n_diverged": diverged,
+                    "n_trajectories": scored,
+                }
+            )
+    return pd.DataFrame(
+        rows, columns=["estimator", "track", "ratio", "n_cells", "n_diverged", "n_trajectories"]
+    )
+
+
+def render_track_summary(frame: pd.DataFrame) -> str:
+    """Markdown: estimators as rows, tracks as columns, ``ratio`` (and diverged counts)."""
+    tracks = list(dict.fromkeys(frame["track"]))
+    indexed = frame.set_index(["estimator", "track"])
+    rows = []
+    for estimator in dict.fromkeys(frame["estimator"]):
+        row = [estimator]
+        for track in tracks:
+            if (estimator, track) not in indexed.index:
+                row.append("-")
+                continue
+            cell = indexed.loc[(estimator, track)]
+            text = f"{cell['ratio']:.3g}x" if math.isfinite(cell["ratio"]) else "-"
+            if cell["n_diverged"]:
+                text += f" ({cell['n_diverged']}/{cell['n_trajectories']} diverged)"
+            row.append(text)
+        rows.append(row)
+    return tabulate(rows, headers=["Estimator", *tracks], tablefmt="github", disable_numparse=True)

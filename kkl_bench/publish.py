@@ -4,9 +4,11 @@ Writes, for one profile:
 
 * ``README.md``: how to read the tables (spread, marks, seeds), the
   leaderboard in the paper's layout with the paper's rows, our RMSE over the
-  paper's, the cost and budget table, the figures, provenance (protocol and
+  paper's, the cost and budget table, the figures, every other track's table
+  and their summary relative to the paper track, provenance (protocol and
   package versions, commits) and the commands that made it;
-* ``<profile>.tex`` (booktabs) and ``<profile>.csv`` (tidy numbers);
+* ``<profile>.tex`` (booktabs) and ``<profile>.csv`` (tidy numbers), and
+  ``<profile>-<track>.tex`` / ``.csv`` for every other track;
 * ``figures/``: PNG (for the Markdown) and SVG (for the page);
 * ``index.html``: a static, self-contained page (no server, no network):
   tables sortable by any column and filterable by system and regime, the
@@ -35,22 +37,32 @@ from kkl_bench.leaderboard import (
     cost_table,
     paper_comparison,
     render,
+    render_track_summary,
     summary_table,
+    track_summary,
 )
+from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
+from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators
 from kkl_bench.results import kept_estimates
+from kkl_bench.tracks import Track, TrackError, get_track
 
 RESULTS_LINK = "results"
 """Where the published folder keeps its raw results (relative to it)."""
 
 
-def reproduce_commands(profile: str, estimators: Iterable[str], seeds: Iterable[int]) -> str:
+def reproduce_commands(
+    profile: str, estimators: Iterable[str], seeds: Iterable[int], tracks: Iterable[str] = ()
+) -> str:
     """The shell commands that make this folder, with relative paths only."""
     names = " ".join(f"'{name}'" if "[" in name else name for name in estimators)
     seed_list = " ".join(map(str, seeds))
+    track_list = " ".join(dict.fromkeys([PAPER_TRACK, *tracks]))
+    track_option = f" --track {track_list}" if track_list != PAPER_TRACK else ""
     return (
         f"kkl-bench run --estimator {names} \\\n"
-        f"    --profile {profile} --seed {seed_list} --jobs 2 --results leaderboard/results\n"
+        f"    --profile {profile} --seed {seed_list}{track_option} --jobs 2 "
+        "--results leaderboard/results\n"
         f"kkl-bench publish --results leaderboard/results --profile {profile} --out leaderboard"
     )
 
@@ -94,8 +106,75 @@ sets, shown for reference and never marked. `kkl_bench/significance.py` has
 the exact procedure."""
 
 
+def _track(name: str) -> Track | None:
+    """The installed declaration of track ``name`` (None if this install does not have it)."""
+    try:
+        return get_track(name)
+    except TrackError:
+        return None
+
+
+def _settling(name: str) -> bool:
+    track = _track(name)
+    return track is not None and track.settling
+
+
+def _tracks_markdown(tracks: dict[str, pd.DataFrame], relative: pd.DataFrame) -> str:
+    """The README section of the tracks other than the paper's (empty if there are none)."""
+    if not tracks:
+        return ""
+    sections = []
+    for name, summary in tracks.items():
+        track = _track(name)
+        description = f"{track.description} " if track else ""
+        settling = (
+            f"\n\nBeside each RMSE, `settle (s)` is the median over trajectories of the "
+            f"settling time: the start of the first {SETTLING_WINDOW_S:g}-second window "
+            f"from which on every window's normalized RMSE (error over the test set's state "
+            f"standard deviation) stays below {SETTLING_THRESHOLD:g}; `never` counts the "
+            "trajectories that never settle."
+            if _settling(name)
+            else ""
+        )
+        sections.append(
+            f"""### Track `{name}`
+
+{description}Task ids read `{name}/<system>/<task>@v<n>`; `docs/protocol.md` (section 8)
+defines every task.{settling}
+
+{render(summary, "markdown", settling=_settling(name))}
+![{name}: RMSE relative to the UKF](figures/relative-rmse-{name}.png)
+
+"""
+        )
+    return f"""## Tracks: where methods break
+
+Every estimator is fitted once, exactly as for the paper's track (sensor
+noise 0.01, the paper's x0 boxes, its own training inputs), and scored on
+each track's test sets as well: the tracks test generalization, never
+retraining. Marks and spread read as above.
+
+### Each track relative to the paper track
+
+Per estimator: for every cell of the track, its mean RMSE over the
+trajectories that did not diverge, divided by its own paper-track RMSE on
+the same system under the regime the track's task names as its reference
+(for example a chirp against the paper's sinusoid); the geometric mean of
+these ratios over the track's cells. Below 1: better than on the paper track.
+Diverged trajectories are left out of the ratio and counted beside it.
+
+{render_track_summary(relative)}
+
+{"".join(sections)}"""
+
+
 def _markdown(
-    summary: pd.DataFrame, results: pd.DataFrame, profile: str, figure_names: list[str]
+    summary: pd.DataFrame,
+    results: pd.DataFrame,
+    profile: str,
+    figure_names: list[str],
+    tracks: dict[str, pd.DataFrame],
+    relative: pd.DataFrame,
 ) -> str:
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
     seeds = sorted(set(results["seed"]))
@@ -158,7 +237,7 @@ below them the estimation-error norm on a log scale.
 
 {cells}
 
-## Provenance
+{_tracks_markdown(tracks, relative)}## Provenance
 
 | what | value |
 |---|---|
@@ -168,7 +247,7 @@ below them the estimation-error norm on a log scale.
 ## Reproduce
 
 ```bash
-{reproduce_commands(profile, estimators, seeds)}
+{reproduce_commands(profile, estimators, seeds, tracks)}
 ```
 """
 
@@ -274,9 +353,25 @@ def _html_table(
     )
 
 
-def _page(
-    summary: pd.DataFrame, results: pd.DataFrame, profile: str, figure_names: list[str]
-) -> str:
+RESULT_COLUMNS = {
+    "estimator": "Estimator",
+    "system": "System",
+    "regime": "Regime",
+    "n_seeds": "Seeds",
+    "rmse_mean": "RMSE",
+    "rmse_seed_std": "± std over seeds",
+    "smape_mean": "SMAPE %",
+    "n_diverged": "Diverged",
+    "relative": "RMSE / UKF",
+    "estimate_us_per_step": "µs / trajectory-step",
+    "mark": "Mark",
+}
+"""The page's result-table columns."""
+SETTLING_COLUMNS = {"settling_median_s": "Settling (s, median)", "n_unsettled": "Never settled"}
+
+
+def _ours_with_relative(summary: pd.DataFrame) -> pd.DataFrame:
+    """Our rows of ``summary`` with ``relative``: RMSE over the reference filter's, per cell."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)].copy()
     reference = ours[ours["estimator"] == figures.REFERENCE].set_index(["system", "regime"])[
         "rmse_mean"
@@ -285,19 +380,55 @@ def _page(
         row.rmse_mean / reference.get((row.system, row.regime), math.nan)
         for row in ours.itertuples()
     ]
-    results_columns = {
-        "estimator": "Estimator",
-        "system": "System",
-        "regime": "Regime",
-        "n_seeds": "Seeds",
-        "rmse_mean": "RMSE",
-        "rmse_seed_std": "± std over seeds",
-        "smape_mean": "SMAPE %",
-        "n_diverged": "Diverged",
-        "relative": "RMSE / UKF",
-        "estimate_us_per_step": "µs / trajectory-step",
-        "mark": "Mark",
-    }
+    return ours
+
+
+def _tracks_html(tracks: dict[str, pd.DataFrame], relative: pd.DataFrame) -> str:
+    """The page's section of the tracks other than the paper's (empty if there are none)."""
+    if not tracks:
+        return ""
+    parts = [
+        "<h2>Tracks</h2>",
+        "<p>Each estimator fitted once as for the paper track and scored on every track. "
+        "Geometric mean over a track's cells of the RMSE over the estimator's own "
+        "paper-track RMSE (same system, the task's reference regime; see the README).</p>",
+        _html_table(
+            relative,
+            {
+                "estimator": "Estimator",
+                "track": "Track",
+                "ratio": "RMSE / paper-track RMSE",
+                "n_diverged": "Diverged",
+                "n_trajectories": "Trajectories",
+            },
+            "tracks",
+        ),
+    ]
+    for name, summary in tracks.items():
+        ours = _ours_with_relative(summary)
+        columns = dict(RESULT_COLUMNS)
+        if _settling(name):
+            columns.update(SETTLING_COLUMNS)
+        track = _track(name)
+        parts += [
+            f"<h3>Track <code>{html.escape(name)}</code></h3>",
+            f"<p>{html.escape(track.description)}</p>" if track else "",
+            _html_table(ours, columns, f"track-{name}", ours["mark"]),
+            f'<figure><img src="figures/relative-rmse-{name}.svg" '
+            f'alt="{html.escape(name)}: RMSE relative to the UKF"></figure>',
+        ]
+    return "\n".join(parts)
+
+
+def _page(
+    summary: pd.DataFrame,
+    results: pd.DataFrame,
+    profile: str,
+    figure_names: list[str],
+    tracks: dict[str, pd.DataFrame],
+    relative: pd.DataFrame,
+) -> str:
+    ours = _ours_with_relative(summary)
     paper = summary[summary["estimator"].str.startswith(PAPER_PREFIX)]
     paper_columns = {
         "estimator": "Method",
@@ -328,7 +459,7 @@ def _page(
         for k, v in _provenance(results).items()
     )
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
-    commands = reproduce_commands(profile, estimators, sorted(set(results["seed"])))
+    commands = reproduce_commands(profile, estimators, sorted(set(results["seed"])), tracks)
     guide = _inline_markdown(html.escape(_reading_guide(summary))).replace("\n\n", "</p><p>")
     return f"""<!DOCTYPE html>
 <html lang="en">
@@ -347,7 +478,7 @@ def _page(
 <label>Regime <select id="filter-regime"><option value="">all</option>{regime_options}</select></label>
 </div>
 <h2>Results</h2>
-{_html_table(ours, results_columns, "results", ours["mark"])}
+{_html_table(ours, RESULT_COLUMNS, "results", ours["mark"])}
 <h2>The paper's numbers</h2>
 {_html_table(paper, paper_columns, "paper")}
 <h2>Cost, training budget and map quality</h2>
@@ -356,6 +487,7 @@ def _page(
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>
 <figure><img src="figures/cost-accuracy.svg" alt="estimation cost against RMSE"></figure>
 {trajectory_figures}
+{_tracks_html(tracks, relative)}
 <h2>Provenance</h2>
 <table><tbody>{provenance}</tbody></table>
 <h2>Reproduce</h2>
@@ -365,12 +497,26 @@ def _page(
 """
 
 
-def draw_figures(summary: pd.DataFrame, results_dir: Path, profile: str, out: Path) -> list[str]:
-    """Draw every figure into ``out/figures`` (PNG and SVG); returns their names."""
+def draw_figures(
+    summary: pd.DataFrame,
+    results_dir: Path,
+    profile: str,
+    out: Path,
+    tracks: dict[str, pd.DataFrame] | None = None,
+) -> list[str]:
+    """Draw every figure into ``out/figures`` (PNG and SVG); returns their names.
+
+    ``summary`` is the paper track's; each of ``tracks`` (name -> summary) gets
+    its own heat map.
+    """
     names = []
     kept = kept_estimates(results_dir, profile)
     directory = out / "figures"
     figures.save(figures.relative_rmse_heatmap(summary), directory / "relative-rmse")
+    for name, of_track in (tracks or {}).items():
+        heatmap = figures.relative_rmse_heatmap(of_track, f"Track {name}: ")
+        figures.save(heatmap, directory / f"relative-rmse-{name}")
+        names.append(f"relative-rmse-{name}")
     figures.save(figures.cost_accuracy_figure(summary), directory / "cost-accuracy")
     names += ["relative-rmse", "cost-accuracy"]
     for system in SYSTEM_TITLES:
@@ -386,7 +532,7 @@ def draw_figures(summary: pd.DataFrame, results_dir: Path, profile: str, out: Pa
 
 
 def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
-    """Write the leaderboard folder of ``results`` (one profile's cells, from
+    """Write the leaderboard folder of ``results`` (one profile's cells, of any tracks, from
     :func:`~kkl_bench.results.load_results` of ``results_dir``) into ``out``.
 
     Returns the files written.
@@ -395,17 +541,33 @@ def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
     if len(profiles) != 1:
         raise ValueError(f"publish one profile at a time; the results hold {', '.join(profiles)}")
     profile = profiles[0]
-    summary = summary_table(results, with_paper=True)
+    paper = results[results["track"] == PAPER_TRACK]
+    if paper.empty:
+        raise ValueError(
+            "publishing needs the paper track's cells (every other track is read against "
+            "them); run `kkl-bench run` with --track paper"
+        )
+    summary = summary_table(paper, with_paper=True)
+    tracks = {
+        name: summary_table(cells)
+        for name, cells in results[results["track"] != PAPER_TRACK].groupby("track", sort=True)
+    }
+    relative = track_summary(results) if tracks else pd.DataFrame()
     out.mkdir(parents=True, exist_ok=True)
-    figure_names = draw_figures(summary, results_dir, profile, out)
+    figure_names = draw_figures(summary, results_dir, profile, out, tracks)
     written = {
-        out / "README.md": _markdown(summary, results, profile, figure_names),
+        out / "README.md": _markdown(summary, paper, profile, figure_names, tracks, relative),
         out / f"{profile}.tex": render(summary, "latex"),
         out / f"{profile}.csv": render(
             summary[~summary["estimator"].str.startswith(PAPER_PREFIX)], "csv"
         ),
-        out / "index.html": _page(summary, results, profile, figure_names),
+        out / "index.html": _page(summary, paper, profile, figure_names, tracks, relative),
     }
+    for name, track_summary_frame in tracks.items():
+        written[out / f"{profile}-{name}.tex"] = render(
+            track_summary_frame, "latex", settling=_settling(name)
+        )
+        written[out / f"{profile}-{name}.csv"] = render(track_summary_frame, "csv")
     for path, text in written.items():
         path.write_text(text)
     return [*written, *sorted((out / "figures").iterdir())]

@@ -1,6 +1,6 @@
 """Per-cell result records: written atomically, one JSON file per cell, loaded into pandas.
 
-A *cell* is one (estimator, system, regime, profile, seed). Its file holds the
+A *cell* is one (estimator, track, system, regime, profile, seed). Its file holds the
 cell's aggregate metrics, the per-trajectory values behind them, the costs,
 and the provenance needed to reproduce it. Beside it, a compressed ``.npz``
 keeps the truth and the estimate of the first test trajectory, so figures
@@ -29,8 +29,13 @@ import numpy as np
 import pandas as pd
 from filelock import FileLock
 
-RECORD_FORMAT = 1
-"""Version of the JSON layout below."""
+from kkl_bench.protocol.streams import PAPER_TRACK
+
+RECORD_FORMAT = 2
+"""Version of the JSON layout below. Format 2 added ``track`` and ``settling_time_s``."""
+READABLE_FORMATS = (1, 2)
+"""Formats :func:`read_cell` reads (a format-1 record is a paper-track cell without
+settling times)."""
 
 _PACKAGES = ("kkl-bench", "numpy", "scipy", "filterpy", "pandas", "torch")
 
@@ -65,6 +70,8 @@ class CellResult:
     test_set_fingerprint: str = ""
     stream_fingerprint: str = ""
     provenance: dict[str, Any] = field(default_factory=dict)
+    track: str = PAPER_TRACK
+    settling_time_s: list[float] = field(default_factory=list)
     record_format: int = RECORD_FORMAT
 
     @property
@@ -83,10 +90,21 @@ class KeptEstimate:
 
 
 def cell_path(
-    results_dir: Path, estimator: str, system: str, regime: str, profile: str, seed: int
+    results_dir: Path,
+    estimator: str,
+    system: str,
+    regime: str,
+    profile: str,
+    seed: int,
+    track: str = PAPER_TRACK,
 ) -> Path:
-    """Where a cell's record lives under ``results_dir``."""
-    return Path(results_dir) / profile / estimator / system / f"{regime}-seed{seed}.json"
+    """Where a cell's record lives under ``results_dir``:
+    ``<profile>/<estimator>/<system>/[<track>/]<regime>-seed<seed>.json`` (no track
+    folder for the paper track)."""
+    folder = Path(results_dir) / profile / estimator / system
+    if track != PAPER_TRACK:
+        folder = folder / track
+    return folder / f"{regime}-seed{seed}.json"
 
 
 def claim(results_dir: Path, estimator: str, system: str, profile: str, seed: int) -> FileLock:
@@ -114,7 +132,9 @@ def write_cell(results_dir: Path, cell: CellResult, kept: KeptEstimate | None = 
 
     Without ``kept`` a stale estimate file of an earlier run is removed.
     """
-    path = cell_path(results_dir, cell.estimator, cell.system, cell.regime, cell.profile, cell.seed)
+    path = cell_path(
+        results_dir, cell.estimator, cell.system, cell.regime, cell.profile, cell.seed, cell.track
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     if kept is None:
         estimate_path(path).unlink(missing_ok=True)
@@ -189,7 +209,7 @@ class DamagedCellError(ValueError):
 
 
 _FIELDS = {f.name: f for f in dataclasses.fields(CellResult)}
-_LISTS = ("rmse", "smape", "nrmse", "per_state_rmse")
+_LISTS = ("rmse", "smape", "nrmse", "per_state_rmse", "settling_time_s")
 
 
 def read_cell(path: Path) -> CellResult:
@@ -205,10 +225,11 @@ def read_cell(path: Path) -> CellResult:
     if not isinstance(data, dict):
         raise DamagedCellError(path, f"expected a JSON object, found {type(data).__name__}")
     record_format = data.get("record_format", RECORD_FORMAT)
-    if record_format != RECORD_FORMAT:
+    if record_format not in READABLE_FORMATS:
         raise DamagedCellError(
             path,
-            f"record format {record_format!r}, this kkl-bench reads format {RECORD_FORMAT}; "
+            f"record format {record_format!r}, this kkl-bench reads formats "
+            f"{', '.join(map(str, READABLE_FORMATS))}; "
             "rerun the cell (`kkl-bench run` recomputes it) or read it with the kkl-bench "
             "version that wrote it",
         )
@@ -244,7 +265,8 @@ def move_aside(path: Path) -> Path:
 
 
 def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = None) -> pd.DataFrame:
-    """Every cell under ``results_dir`` as one row (per-trajectory values as list columns).
+    """Every cell under ``results_dir``, of every track, as one row (per-trajectory values as
+    list columns).
 
     Columns: the :class:`CellResult` fields, plus ``rmse_mean``, ``rmse_std``,
     ``smape_mean``, ``smape_std``, ``nrmse_mean``, ``nrmse_std`` and
@@ -253,7 +275,8 @@ def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = Non
     is given, is appended to it and left out.
     """
     rows = []
-    for path in sorted(Path(results_dir).glob("*/*/*/*.json")):
+    paths = [*Path(results_dir).glob("*/*/*/*.json"), *Path(results_dir).glob("*/*/*/*/*.json")]
+    for path in sorted(paths):
         try:
             cell = read_cell(path)
         except DamagedCellError as error:
@@ -283,7 +306,7 @@ def mean_and_std(values: list[float]) -> tuple[float, float]:
 def trajectory_table(results: pd.DataFrame) -> pd.DataFrame:
     """Long format: one row per scored test trajectory (identity columns + metrics)."""
     scored = results[results["status"] == "ok"]
-    identity = ["estimator", "system", "regime", "profile", "seed"]
+    identity = ["estimator", "track", "system", "regime", "profile", "seed"]
     long = scored[[*identity, "rmse", "smape", "nrmse"]].explode(["rmse", "smape", "nrmse"])
     long["trajectory"] = long.groupby(identity).cumcount()
     return long.astype({"rmse": float, "smape": float, "nrmse": float}).reset_index(drop=True)
@@ -349,7 +372,8 @@ def _from_json(value: Any) -> Any:
 
 
 def kept_estimates(results_dir: Path, profile: str) -> dict[tuple[str, str, str], KeptEstimate]:
-    """``(estimator, system, regime) -> KeptEstimate`` of the lowest seed that kept one."""
+    """``(estimator, system, regime) -> KeptEstimate`` of the paper track's cells, from the
+    lowest seed that kept one."""
     kept = {}
     for path in sorted(Path(results_dir, profile).glob("*/*/*.json")):
         regime, _, seed = path.stem.rpartition("-seed")

@@ -1,8 +1,9 @@
-"""Tasks, profiles and the pinned test sets (protocol section 4).
+"""Tasks, profiles and the pinned test sets (protocol sections 4 and 8).
 
-A :class:`Task` is one (system, regime) cell of the benchmark, with a
-versioned id such as ``lorenz/square@v1``. Its test set is drawn from the
-protocol's pinned random streams and carries two fingerprints:
+A :class:`Task` is one (system, regime) cell of a track (:mod:`kkl_bench.tracks`),
+with a versioned id such as ``ood-inputs/duffing/chirp@v1``; the paper
+track's ids carry no track name (``lorenz/square@v1``). Its test set is drawn
+from the protocol's pinned random streams and carries two fingerprints:
 
 * ``stream_fingerprint`` hashes the random draws (x0, regime numbers, noise).
   They come from numpy's PCG64 generator and are identical on every machine.
@@ -26,24 +27,39 @@ from typing import Any
 
 import numpy as np
 
-from kkl_bench.protocol import DT, N_SAMPLES, PROTOCOL_VERSION, SIGMA_V, SIGMA_W
+from kkl_bench.protocol import DT, PROTOCOL_VERSION
 from kkl_bench.protocol.metrics import state_scale
 from kkl_bench.protocol.simulate import Trajectories, simulate
-from kkl_bench.protocol.streams import draw_trajectory, root_seed, trajectory_rng
-from kkl_bench.registry import regimes, systems
+from kkl_bench.protocol.streams import PAPER_TRACK, draw_trajectory, root_seed, trajectory_rng
+from kkl_bench.registry import systems
+from kkl_bench.tracks import TaskDefinition, get_track
 
 
 @dataclass(frozen=True)
 class Task:
-    """One benchmark cell: a system under an input regime."""
+    """One benchmark cell: a system under one of a track's tasks (``regime`` names it)."""
 
     system: str
     regime: str
     version: int = PROTOCOL_VERSION
+    track: str = PAPER_TRACK
 
     @property
     def id(self) -> str:
-        return f"{self.system}/{self.regime}@v{self.version}"
+        prefix = "" if self.track == PAPER_TRACK else f"{self.track}/"
+        return f"{prefix}{self.system}/{self.regime}@v{self.version}"
+
+    def definition(self) -> TaskDefinition:
+        """The track's declaration of this task (regime, noise, x0 box, horizon)."""
+        track = get_track(self.track)
+        if self.version != track.version:
+            raise ValueError(f"task {self.id}: track {track.name!r} is at version {track.version}")
+        if self.system not in track.systems:
+            raise ValueError(
+                f"task {self.id}: track {track.name!r} covers {', '.join(track.systems)}, "
+                f"not {self.system!r}"
+            )
+        return track.task(self.regime)
 
     def __str__(self) -> str:
         return self.id
@@ -136,23 +152,33 @@ def _sha256(*arrays: np.ndarray) -> str:
 
 def make_test_set(task: Task, n_test: int) -> TestSet:
     """:func:`build_test_set`, cached in memory (its arrays are read-only)."""
-    root_seed(task.system, task.regime, "test")  # refused inside sealed_test_streams()
+    root_seed(task.system, task.regime, "test", task.track)  # refused if sealed
     return _cached_test_set(task, n_test)
 
 
 def build_test_set(task: Task, n_test: int) -> TestSet:
     """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
 
-    Trajectory ``i`` is the same whatever ``n_test`` is.
+    Trajectory ``i`` is the same whatever ``n_test`` is. Each draws, in this
+    order, its initial state from the task's box, the regime's uniform
+    numbers, the process noise and the measurement noise (with the task's
+    standard deviations).
     """
-    if task.version != PROTOCOL_VERSION:
-        raise ValueError(f"task {task.id}: this kkl-bench implements protocol v{PROTOCOL_VERSION}")
+    definition = task.definition()
     system = systems.get(task.system)()
-    regime = regimes.get(task.regime)()
-    root = root_seed(task.system, task.regime, "test")
+    regime = definition.regime()
+    low, high = definition.x0_box.for_system(system)
+    t = DT * np.arange(definition.n_samples)
+    root = root_seed(task.system, task.regime, "test", task.track)
     draws = [
         draw_trajectory(
-            trajectory_rng(root, i), system.x0_low, system.x0_high, N_SAMPLES, SIGMA_W, SIGMA_V
+            trajectory_rng(root, i),
+            low,
+            high,
+            definition.n_samples,
+            definition.sigma_w,
+            definition.sigma_v,
+            regime.n_numbers(t),
         )
         for i in range(n_test)
     ]
@@ -161,7 +187,6 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
     process_noise = np.stack([d.process_noise for d in draws])
     measurement_noise = np.stack([d.measurement_noise for d in draws])[..., None]
     params = regime.params_from_uniform(r)
-    t = DT * np.arange(N_SAMPLES)
     data = simulate(system, x0, regime.signal(t, params), DT, process_noise, measurement_noise)
     for array in (data.t, data.u, data.x, data.y, params):
         array.flags.writeable = False

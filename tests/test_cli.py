@@ -72,7 +72,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
         ),
         (
             ["run", "--estimator", "ekf", "--regime", "ramp"],
-            "unknown regime 'ramp'; valid regimes: constant, sinusoid, square, zero",
+            "unknown regime 'ramp' for track(s) paper; valid regimes: constant, sinusoid, square, zero",
         ),
         (
             ["run", "--estimator", "ekf", "--profile", "huge"],

@@ -131,8 +131,8 @@ def job_whose_worker_dies_on_vdp(spec, job):
     """Runs the job, except that the worker process scoring vdp dies without a word."""
     if job.system == "vdp":
         other = [
-            cell_path(spec.results_dir, job.estimator, "duffing", r, "quick", 0)
-            for r in job.regimes
+            cell_path(spec.results_dir, job.estimator, "duffing", task.regime, "quick", 0)
+            for task in job.tasks
         ]
         deadline = time.monotonic() + 60
         while not all(path.exists() for path in other) and time.monotonic() < deadline:

@@ -73,3 +73,45 @@ def state_scale(x: np.ndarray) -> np.ndarray:
 def nrmse(x: np.ndarray, x_hat: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """``(batch,)`` mean over states of ``RMSE_i / scale_i`` (see :func:`state_scale`)."""
     return np.mean(per_state_rmse(x, x_hat) / scale, axis=1)
+
+
+SETTLING_WINDOW_S = 1.0
+"""Length of the sliding window of :func:`settling_time` (s)."""
+SETTLING_THRESHOLD = 0.1
+"""Normalized RMSE under which :func:`settling_time` counts the error as settled."""
+
+
+def settling_time(
+    x: np.ndarray,
+    x_hat: np.ndarray,
+    scale: np.ndarray,
+    dt: float,
+    window_s: float = SETTLING_WINDOW_S,
+    threshold: float = SETTLING_THRESHOLD,
+) -> np.ndarray:
+    """``(batch,)`` seconds until the error settles, over the whole trajectory (no transient cut).
+
+    The error of sample ``k`` is ``mean_i ((x_i - x_hat_i) / scale_i)^2``; its
+    root mean over a window of ``window_s`` seconds is the window's normalized
+    RMSE. The settling time is the start of the first window from which on
+    every window's normalized RMSE is below ``threshold``: 0 if the estimate
+    is within it from the first window, ``inf`` if the last window is not
+    (never settled) or the estimate diverged.
+    """
+    if x.shape != x_hat.shape or x.ndim != 3:
+        raise ValueError(
+            f"x and x_hat must both be (batch, steps, n_x); got {x.shape} and {x_hat.shape}"
+        )
+    window = max(1, round(window_s / dt))
+    if x.shape[1] < window:
+        raise ValueError(f"trajectories of {x.shape[1]} samples are shorter than one window")
+    with np.errstate(invalid="ignore", over="ignore"):
+        error = np.mean(((x - x_hat) / scale) ** 2, axis=2)
+        total = np.cumsum(np.pad(error, ((0, 0), (1, 0))), axis=1)
+        sliding = np.sqrt((total[:, window:] - total[:, :-window]) / window)
+    above = ~(sliding < threshold)  # NaN counts as above
+    n_windows = above.shape[1]
+    last_above = np.where(above.any(axis=1), n_windows - 1 - np.argmax(above[:, ::-1], axis=1), -1)
+    start = last_above + 1
+    times = np.where(start < n_windows, start * dt, np.inf)
+    return _with_divergence(times, x_hat)

@@ -1,9 +1,9 @@
 """The protocol's pinned random streams (protocol section 4).
 
-Test trajectory ``i`` of a (system, regime) cell draws, from its own
-generator and in this order: ``x0``, three regime numbers ``r``, the process
-noise and the measurement noise. Any implementation following these rules
-draws the same numbers.
+Test trajectory ``i`` of a task draws, from its own generator and in this
+order: ``x0``, the regime's uniform numbers ``r`` (three for the paper's
+regimes), the process noise and the measurement noise. Any implementation
+following these rules draws the same numbers.
 """
 
 from __future__ import annotations
@@ -42,13 +42,20 @@ def sealed_test_streams() -> Iterator[None]:
         _test_streams_sealed.reset(token)
 
 
-def root_seed(system: str, regime: str, split: str) -> int:
-    """``zlib.crc32(b"kkl-bench/v1/<system>/<regime>/<split>")``."""
+PAPER_TRACK = "paper"
+"""The track of the paper's 16 cells, whose stream keys carry no track name."""
+
+
+def root_seed(system: str, regime: str, split: str, track: str = PAPER_TRACK) -> int:
+    """``zlib.crc32(b"kkl-bench/v1/<system>/<regime>/<split>")`` for the paper track,
+    ``zlib.crc32(b"kkl-bench/v1/<track>/<system>/<regime>/<split>")`` for any other."""
     if split == "test" and _test_streams_sealed.get():
         raise TestStreamAccessError(
-            f"the test stream of {system}/{regime} was requested where test data are off-limits"
+            f"the test stream of {track}/{system}/{regime} was requested where test data are "
+            "off-limits"
         )
-    return zlib.crc32(f"kkl-bench/v{PROTOCOL_VERSION}/{system}/{regime}/{split}".encode())
+    prefix = "" if track == PAPER_TRACK else f"{track}/"
+    return zlib.crc32(f"kkl-bench/v{PROTOCOL_VERSION}/{prefix}{system}/{regime}/{split}".encode())
 
 
 def trajectory_rng(root: int, index: int) -> np.random.Generator:
@@ -63,7 +70,7 @@ class TrajectoryDraws:
     Attributes
     ----------
     x0: ``(n_x,)`` initial state.
-    r: ``(3,)`` uniform numbers the regime maps to its parameters.
+    r: ``(n_numbers,)`` uniform numbers the regime maps to its parameters.
     process_noise: ``(steps - 1, n_x)`` samples ``w_k``.
     measurement_noise: ``(steps,)`` samples ``v_k``.
     """
@@ -81,10 +88,11 @@ def draw_trajectory(
     steps: int,
     sigma_w: float,
     sigma_v: float,
+    n_numbers: int = N_REGIME_NUMBERS,
 ) -> TrajectoryDraws:
     """Draw one trajectory's randomness in the protocol's order."""
     x0 = rng.uniform(x0_low, x0_high, len(x0_low))
-    r = rng.random(N_REGIME_NUMBERS)
+    r = rng.random(n_numbers)
     process_noise = sigma_w * rng.standard_normal((steps - 1, len(x0_low)))
     measurement_noise = sigma_v * rng.standard_normal(steps)
     return TrajectoryDraws(x0, r, process_noise, measurement_noise)

@@ -1,0 +1,357 @@
+"""Tracks: named, versioned sets of tasks, each declared in one TOML file (protocol section 8).
+
+A track says which systems it covers and, per task, the input family and its
+parameter ranges, the measurement and process noise, the box initial states
+are drawn from and the horizon. Estimators are never fitted for a track:
+they are fitted once, as the paper's protocol says, and scored on every
+track asked for. The built-in tracks are ``tasks/tracks/*.toml``; directories
+listed in ``$KKL_BENCH_TRACKS`` (separated by ``:``) add more, with no code.
+
+A track file::
+
+    name = "noise"                 # lower case, digits and '-'
+    version = 1                    # task ids end in @v<version>
+    description = "..."
+    systems = ["duffing", "vdp"]
+    settling = false               # show the settling-time column in its tables
+
+    [defaults]                     # any task field below, for every task
+    measurement_noise = 0.01       # standard deviation of v_k (the paper's: 0.01)
+    process_noise = 0.01           # standard deviation of w_k (the paper's: 0.01)
+    horizon = 50.0                 # s, a whole number of protocol steps
+    x0_box = {scale = 1.0}         # the system's box, half-widths scaled about
+                                   # its centre; [x0_box.<system>] low/high replace it
+
+    [[task]]
+    name = "sinusoid-sigma0.1"     # unique within the track
+    family = "sinusoid"            # a registered input regime
+    reference = "sinusoid"         # the paper task it is compared with (default: family)
+    amplitude = [0.5, 1.0]         # the family's parameters (ranges)
+    measurement_noise = 0.1
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib.resources
+import os
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
+from kkl_bench.protocol.signals import Regime
+from kkl_bench.protocol.streams import PAPER_TRACK
+from kkl_bench.registry import regimes, systems
+
+TRACKS_ENV = "KKL_BENCH_TRACKS"
+"""Environment variable: more directories of track files, separated by ``:``."""
+TASK_FIELDS = (
+    "name",
+    "family",
+    "reference",
+    "measurement_noise",
+    "process_noise",
+    "horizon",
+    "x0_box",
+)
+"""Fields every task (and ``[defaults]``, except name and family) may set; the rest go to the family."""
+_NAME = re.compile(r"[a-z0-9][a-z0-9-]*")
+_TASK_NAME = re.compile(r"[a-z0-9][a-z0-9_.-]*")
+
+
+class TrackError(ValueError):
+    """A track file is malformed; the message names the file, the task and the field."""
+
+
+@dataclass(frozen=True)
+class X0Box:
+    """Where initial states are drawn from: the system's box with its half-widths times
+    ``scale`` about its centre, or an explicit ``(system, low, high)`` box."""
+
+    scale: float = 1.0
+    explicit: tuple[tuple[str, tuple[float, ...], tuple[float, ...]], ...] = ()
+
+    def for_system(self, system: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(low, high)``, each ``(n_x,)``, for the system model ``system``."""
+        for name, low, high in self.explicit:
+            if name == system.name:
+                return np.array(low), np.array(high)
+        if self.scale == 1.0:
+            return system.x0_low, system.x0_high
+        centre = (system.x0_low + system.x0_high) / 2.0
+        half = self.scale * (system.x0_high - system.x0_low) / 2.0
+        return centre - half, centre + half
+
+
+@dataclass(frozen=True)
+class TaskDefinition:
+    """One task of a track, for every system of the track.
+
+    Attributes
+    ----------
+    name: the task's name, the ``<regime>`` of its id ``<track>/<system>/<regime>@v<n>``.
+    family: the registered input regime its signals come from.
+    params: the family's keyword arguments, as ``(name, value)`` pairs.
+    reference: the paper task the cross-track summary compares it with.
+    sigma_v, sigma_w: measurement and process noise standard deviations.
+    horizon: s; the test trajectories have ``n_samples = horizon / DT + 1`` samples.
+    x0_box: where initial states are drawn from.
+    """
+
+    name: str
+    family: str
+    params: tuple[tuple[str, Any], ...] = ()
+    reference: str = ""
+    sigma_v: float = SIGMA_V
+    sigma_w: float = SIGMA_W
+    horizon: float = (N_SAMPLES - 1) * DT
+    x0_box: X0Box = X0Box()
+
+    @property
+    def n_samples(self) -> int:
+        return round(self.horizon / DT) + 1
+
+    def regime(self) -> Regime:
+        """The input regime with this task's parameters."""
+        return regimes.get(self.family)(**dict(self.params))
+
+
+@dataclass(frozen=True)
+class Track:
+    """A named, versioned set of tasks (see the module docstring for the file format)."""
+
+    name: str
+    version: int
+    description: str
+    systems: tuple[str, ...]
+    tasks: tuple[TaskDefinition, ...]
+    settling: bool = False
+    source: str = ""
+
+    def task_names(self) -> list[str]:
+        return [task.name for task in self.tasks]
+
+    def task(self, name: str) -> TaskDefinition:
+        """The task ``name``; the error lists the track's tasks."""
+        for task in self.tasks:
+            if task.name == name:
+                return task
+        raise TrackError(
+            f"track {self.name!r} has no task {name!r}; its tasks: {', '.join(self.task_names())}"
+        )
+
+
+def parse_track(text: str, source: str = "<string>") -> Track:
+    """The track declared by the TOML ``text`` (``source`` names it in errors)."""
+    try:
+        table = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise TrackError(f"{source}: not valid TOML: {error}") from None
+
+    def fail(where: str, message: str) -> TrackError:
+        return TrackError(f"{source}: {where}: {message}")
+
+    known = {"name", "version", "description", "systems", "settling", "defaults", "task"}
+    for key in table:
+        if key not in known:
+            raise fail(f"field {key!r}", f"unknown field; a track sets {', '.join(sorted(known))}")
+    name = table.get("name")
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise fail("field 'name'", f"must be lower-case letters, digits and '-', got {name!r}")
+    version = table.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise fail("field 'version'", f"must be a positive integer, got {version!r}")
+    listed = table.get("systems")
+    if not isinstance(listed, list) or not listed or not all(isinstance(s, str) for s in listed):
+        raise fail("field 'systems'", f"must be a non-empty list of system names, got {listed!r}")
+    for system in listed:
+        if system not in systems:
+            raise fail(
+                "field 'systems'",
+                f"unknown system {system!r}; valid systems: {', '.join(systems.names())}",
+            )
+    settling = table.get("settling", False)
+    if not isinstance(settling, bool):
+        raise fail("field 'settling'", f"must be true or false, got {settling!r}")
+    defaults = table.get("defaults", {})
+    if not isinstance(defaults, dict):
+        raise fail("field 'defaults'", "must be a table")
+    for key in ("name", "family"):
+        if key in defaults:
+            raise fail(f"[defaults] field {key!r}", "is set per task, not in [defaults]")
+    entries = table.get("task")
+    if (
+        not isinstance(entries, list)
+        or not entries
+        or not all(isinstance(e, dict) for e in entries)
+    ):
+        raise fail("[[task]]", "a track needs at least one [[task]] table")
+    tasks: list[TaskDefinition] = []
+    for number, entry in enumerate(entries, start=1):
+        task_name = entry.get("name")
+        where = f"task {task_name!r}" if isinstance(task_name, str) else f"[[task]] number {number}"
+        if not isinstance(task_name, str) or not _TASK_NAME.fullmatch(task_name):
+            raise fail(
+                f"{where}, field 'name'",
+                f"must be lower-case letters, digits, '_', '.' and '-', got {task_name!r}",
+            )
+        if task_name in {t.name for t in tasks}:
+            raise fail(where, f"duplicate task id {name}/<system>/{task_name}")
+        try:
+            tasks.append(_task(task_name, {**defaults, **entry}, tuple(listed)))
+        except (TrackError, ValueError, TypeError) as error:
+            raise fail(where, str(error)) from None
+    return Track(
+        name,
+        version,
+        str(table.get("description", "")),
+        tuple(listed),
+        tuple(tasks),
+        settling,
+        source,
+    )
+
+
+def _number(field: str, value: Any, positive: bool = False) -> float:
+    if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value):
+        raise TrackError(f"field {field!r} must be a number, got {value!r}")
+    if value < 0 or (positive and value == 0):
+        raise TrackError(
+            f"field {field!r} must be {'positive' if positive else 'non-negative'}, got {value!r}"
+        )
+    return float(value)
+
+
+def _task(name: str, entry: Mapping[str, Any], track_systems: tuple[str, ...]) -> TaskDefinition:
+    """One task from its merged ``[defaults]`` and ``[[task]]`` fields."""
+    family = entry.get("family")
+    if not isinstance(family, str):
+        raise TrackError(f"field 'family' is missing or not a name, got {family!r}")
+    if family not in regimes:
+        raise TrackError(
+            f"field 'family': unknown family {family!r}; valid families: {', '.join(regimes.names())}"
+        )
+    regime_class = regimes.get(family)
+    fields = {f.name: f for f in dataclasses.fields(regime_class)}
+    params = {key: value for key, value in entry.items() if key not in TASK_FIELDS}
+    unknown = sorted(set(params) - set(fields))
+    if unknown:
+        raise TrackError(
+            f"unknown field {unknown[0]!r}; family {family!r} takes "
+            f"{', '.join(fields) or 'no parameters'}, and every task may set {', '.join(TASK_FIELDS)}"
+        )
+    required = [
+        key
+        for key, f in fields.items()
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
+    missing = [key for key in required if key not in params]
+    if missing:
+        raise TrackError(f"family {family!r} needs parameter(s) {', '.join(missing)}")
+    params = {
+        key: tuple(value) if isinstance(value, list) else value for key, value in params.items()
+    }
+    try:
+        regime_class(**params)
+    except ValueError as error:
+        raise TrackError(f"family {family!r}: {error}") from None
+    horizon = _number("horizon", entry.get("horizon", (N_SAMPLES - 1) * DT), positive=True)
+    if abs(horizon / DT - round(horizon / DT)) > 1e-9:
+        raise TrackError(f"field 'horizon' must be a whole number of {DT} s steps, got {horizon!r}")
+    reference = entry.get("reference", family)
+    if not isinstance(reference, str):
+        raise TrackError(f"field 'reference' must be a task name, got {reference!r}")
+    return TaskDefinition(
+        name=name,
+        family=family,
+        params=tuple(sorted(params.items())),
+        reference=reference,
+        sigma_v=_number("measurement_noise", entry.get("measurement_noise", SIGMA_V)),
+        sigma_w=_number("process_noise", entry.get("process_noise", SIGMA_W)),
+        horizon=horizon,
+        x0_box=_x0_box(entry.get("x0_box", {}), track_systems),
+    )
+
+
+def _x0_box(value: Any, track_systems: tuple[str, ...]) -> X0Box:
+    if not isinstance(value, dict):
+        raise TrackError(f"field 'x0_box' must be a table, got {value!r}")
+    scale = _number("x0_box.scale", value.get("scale", 1.0), positive=True)
+    explicit = []
+    for system, box in value.items():
+        if system == "scale":
+            continue
+        if system not in track_systems:
+            raise TrackError(
+                f"field 'x0_box.{system}': not a system of this track ({', '.join(track_systems)})"
+            )
+        n_x = systems.get(system)().n_x
+        if not isinstance(box, dict) or set(box) != {"low", "high"}:
+            raise TrackError(f"field 'x0_box.{system}' must set exactly low and high")
+        low, high = (np.asarray(box[k], dtype=float) for k in ("low", "high"))
+        if low.shape != (n_x,) or high.shape != (n_x,) or np.any(low > high):
+            raise TrackError(
+                f"field 'x0_box.{system}': low and high must be {n_x} numbers with low <= high, "
+                f"got {box['low']!r} and {box['high']!r}"
+            )
+        explicit.append((system, tuple(low.tolist()), tuple(high.tolist())))
+    return X0Box(scale, tuple(explicit))
+
+
+def _track_files() -> list[tuple[str, str]]:
+    """``(source, text)`` of every track file: the built-in ones, then ``$KKL_BENCH_TRACKS``'s."""
+    folder = importlib.resources.files("kkl_bench.tasks").joinpath("tracks")
+    found = [
+        (f"tasks/tracks/{entry.name}", entry.read_text())
+        for entry in sorted(folder.iterdir(), key=lambda e: e.name)
+        if entry.name.endswith(".toml")
+    ]
+    for directory in filter(None, os.environ.get(TRACKS_ENV, "").split(":")):
+        path = Path(directory)
+        if not path.is_dir():
+            raise TrackError(f"${TRACKS_ENV} names {directory!r}, which is not a directory")
+        found += [(str(file), file.read_text()) for file in sorted(path.glob("*.toml"))]
+    return found
+
+
+@functools.cache
+def _load(environment: str) -> dict[str, Track]:
+    loaded: dict[str, Track] = {}
+    for source, text in _track_files():
+        track = parse_track(text, source)
+        if track.name in loaded:
+            raise TrackError(
+                f"{source}: track {track.name!r} is already declared in {loaded[track.name].source}"
+            )
+        loaded[track.name] = track
+    if PAPER_TRACK in loaded:  # the default track first, then the others by file name
+        loaded = {PAPER_TRACK: loaded[PAPER_TRACK], **loaded}
+    paper = loaded.get(PAPER_TRACK)
+    for track in loaded.values():
+        for task in track.tasks:
+            if paper is not None and task.reference not in paper.task_names():
+                raise TrackError(
+                    f"{track.source}: task {task.name!r}, field 'reference': {task.reference!r} "
+                    f"is not a task of the paper track ({', '.join(paper.task_names())})"
+                )
+    return loaded
+
+
+def load_tracks() -> dict[str, Track]:
+    """Every track by name, built-in first (read once per ``$KKL_BENCH_TRACKS`` value)."""
+    return _load(os.environ.get(TRACKS_ENV, ""))
+
+
+def get_track(name: str) -> Track:
+    """The track ``name``; the error lists the valid ones."""
+    tracks = load_tracks()
+    if name not in tracks:
+        raise TrackError(f"unknown track {name!r}; valid tracks: {', '.join(tracks)}")
+    return tracks[name]
