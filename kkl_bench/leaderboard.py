@@ -573,7 +573,7 @@ def render_track_summary(frame: pd.DataFrame) -> str:
             cell = indexed.loc[(estimator, track)]
             text = f"{cell['ratio']:.3g}x" if math.isfinite(cell["ratio"]) else "-"
             if cell["n_diverged"]:
-                text += f" ({cell['n_diverged']}/{cell['n_trajectories']} diverged)"
+                text += f" ({int(cell['n_diverged'])}/{int(cell['n_trajectories'])} diverged)"
             row.append(text)
         rows.append(row)
     return tabulate(rows, headers=["Estimator", *tracks], tablefmt="github", disable_numparse=True)

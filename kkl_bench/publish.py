@@ -139,7 +139,7 @@ def _tracks_markdown(tracks: dict[str, pd.DataFrame], relative: pd.DataFrame) ->
         sections.append(
             f"""### Track `{name}`
 
-{description}Task ids read `{name}/<system>/<task>@v<n>`; `docs/protocol.md` (section 8)
+{description}Task ids read `{name}/<system>/<task>@v<n>`; `docs/protocol.md` (section 7)
 defines every task.{settling}
 
 {render(summary, "markdown", settling=_settling(name))}

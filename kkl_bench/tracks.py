@@ -1,4 +1,4 @@
-"""Tracks: named, versioned sets of tasks, each declared in one TOML file (protocol section 8).
+"""Tracks: named, versioned sets of tasks, each declared in one TOML file (protocol section 7).
 
 A track says which systems it covers and, per task, the input family and its
 parameter ranges, the measurement and process noise, the box initial states

@@ -79,6 +79,10 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
             "unknown profile 'huge'; valid profiles: quick, standard, paper",
         ),
         (["check", "nope"], "unknown estimator 'nope'"),
+        (
+            ["run", "--estimator", "ekf", "--track", "noisy"],
+            "unknown track 'noisy'; valid tracks: paper, far-init, noise, ood-inputs",
+        ),
     ],
 )
 def test_bad_names_are_clear_errors(args, message, capsys, tmp_path):
@@ -165,3 +169,43 @@ def test_variant_names_are_canonical_and_stored_under_their_own_name(tmp_path, c
     }
     assert main(["check", "ukf[alpha=0.3]", "--system", "vdp"]) == 0
     assert "FAIL" not in capsys.readouterr().out
+
+
+def test_list_shows_the_tracks(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for track in ("paper@v1", "ood-inputs@v1", "noise@v1", "far-init@v1"):
+        assert f"track {track} (" in out
+    assert "chirp, multisine, random-steps, sinusoid-2x, ramp" in out
+
+
+def test_leaderboard_of_a_track_not_run_says_how_to_run_it(tmp_path, capsys):
+    args = ["--results", str(tmp_path)]
+    assert main(["run", "--estimator", "ekf", "--system", "vdp", "--regime", "zero", *args]) == 0
+    assert main(["leaderboard", "--track", "far-init", *args]) == 2
+    assert (
+        "no results for track 'far-init'; the results hold paper (run with --track far-init)"
+        in (capsys.readouterr().err)
+    )
+    assert (
+        main(
+            [
+                "run",
+                "--estimator",
+                "ekf",
+                "--system",
+                "vdp",
+                "--track",
+                "far-init",
+                "--regime",
+                "zero",
+                *args,
+            ]
+        )
+        == 0
+    )
+    capsys.readouterr()
+    assert main(["leaderboard", "--track", "far-init", *args]) == 0
+    assert "| Van der Pol Zero | settle (s) |" in capsys.readouterr().out.replace("  ", "")
+    assert main(["leaderboard", "--track", "summary", *args]) == 0
+    assert "| ekf" in capsys.readouterr().out

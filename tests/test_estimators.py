@@ -1,21 +1,46 @@
-"""Every registered estimator passes the conformance kit; the filters are accurate on easy cases."""
+"""Every registered estimator passes the conformance kit and never trains on an
+``ood-inputs`` family; the filters are accurate on easy cases."""
+
+from unittest import mock
 
 import numpy as np
 import pytest
 
 from kkl_bench.estimator import Estimator, NotFittedError
 from kkl_bench.harness import RunSpec, make_fit_context, score
+from kkl_bench.kkl.inputs import MixtureFamily
 from kkl_bench.registry import estimators
 from kkl_bench.task import Task, get_profile, make_test_set
 from kkl_bench.testing import Conformance, check_estimator
+from kkl_bench.tracks import get_track
+from kkl_bench.training import TrainingData
 
 _conformance = {}
+_training_inputs = {}
 
 
 def conformance(name):
+    """The estimator's conformance checks, fitted once while its training inputs are recorded."""
     if name not in _conformance:
-        _conformance[name] = Conformance(name)
+        check = Conformance(name)
+        simulate = TrainingData.simulate
+        seen = []
+
+        def recording(self, inputs, *args, **kwargs):
+            data = simulate(self, inputs, *args, **kwargs)
+            seen.append((inputs, float(np.abs(data.u).max())))
+            return data
+
+        with mock.patch.object(TrainingData, "simulate", recording):
+            check.fitted  # noqa: B018 (fits)
+        _conformance[name], _training_inputs[name] = check, seen
     return _conformance[name]
+
+
+def _components(family):
+    if isinstance(family, MixtureFamily):
+        return [c for member in family.families for c in _components(member)]
+    return [family]
 
 
 CHECK_NAMES = [name for name, _ in Conformance("ekf").checks()]
@@ -25,6 +50,24 @@ CHECK_NAMES = [name for name, _ in Conformance("ekf").checks()]
 @pytest.mark.parametrize("name", estimators.names())
 def test_conformance(name, check):
     getattr(conformance(name), check)()
+
+
+@pytest.mark.parametrize("name", estimators.names())
+def test_no_fit_simulates_an_ood_inputs_family(name):
+    """The ``ood-inputs`` track is unseen: no fit draws its families, exceeds the training
+    amplitude its wide sinusoid and ramp leave, or reaches its multisine's band."""
+    conformance(name)
+    track = get_track("ood-inputs")
+    unseen = {
+        type(track.task(task).regime()) for task in ("chirp", "multisine", "random-steps", "ramp")
+    }
+    lowest_ood_tone = track.task("multisine").regime().omega[0]
+    for inputs, peak in _training_inputs[name]:
+        for family in _components(inputs):
+            assert type(family) not in unseen, f"{name} trains on {family!r}"
+            assert family != track.task("sinusoid-2x").regime()
+            assert max(getattr(family, "omega", (0.0, 0.0))) <= lowest_ood_tone
+        assert peak <= 1.0, f"{name} trains with |u| up to {peak}"
 
 
 @pytest.mark.parametrize("name", ["ekf", "ukf"])

@@ -1,6 +1,7 @@
 """The harness records failures as cells, keeps going, and skips finished cells."""
 
 import numpy as np
+import pytest
 
 from kkl_bench.estimator import Estimator
 from kkl_bench.harness import RunSpec, run
@@ -31,14 +32,14 @@ class CentreOfBox(Estimator):
 
 
 def spec_for(name, tmp_path, **overrides):
-    return RunSpec(
+    defaults = dict(
         estimators=(name,),
         systems=("duffing",),
         regimes=("zero", "sinusoid"),
         profile=get_profile("quick"),
         results_dir=tmp_path,
-        **overrides,
     )
+    return RunSpec(**{**defaults, **overrides})
 
 
 def variant(failure):
@@ -92,3 +93,39 @@ def test_finished_cells_are_skipped_and_force_redoes_them(tmp_path, register_est
     assert cell.protocol == "v1+E1" and len(cell.test_set_fingerprint) == 16
     assert cell.provenance["versions"]["numpy"] == np.__version__
     assert cell.estimator_params == {"failure": ""}
+
+
+class CountsFits(CentreOfBox):
+    """The centre of the box, counting its fits (class-wide; runs are serial here)."""
+
+    fits = 0
+
+    def fit(self, context):
+        type(self).fits += 1
+        return super().fit(context)
+
+
+def test_an_estimator_is_fitted_once_and_scored_on_every_track(tmp_path, register_estimator):
+    register_estimator("counts_fits", CountsFits)
+    spec = spec_for("counts_fits", tmp_path, tracks=("paper", "far-init", "noise"), regimes=None)
+    summary = run(spec)
+    assert CountsFits.fits == 1
+    tasks = sorted(cell.task for cell in summary.scored)
+    assert len(tasks) == 4 + 4 + 9
+    assert "far-init/duffing/zero@v1" in tasks and "noise/duffing/square-sigma0.1@v1" in tasks
+    assert {cell.track for cell in summary.scored} == {"paper", "far-init", "noise"}
+    assert all(len(cell.settling_time_s) == 5 for cell in summary.scored)
+    again = run(spec)  # a rerun finds every track's cells done
+    assert (len(again.scored), len(again.cached), CountsFits.fits) == (0, 17, 1)
+
+
+def test_regimes_are_task_names_of_the_selected_tracks(tmp_path):
+    spec = spec_for("ekf", tmp_path, tracks=("paper", "noise"), regimes=("zero", "square-sigma0.1"))
+    assert [task.id for task in spec.tasks()] == [
+        "duffing/zero@v1",
+        "noise/duffing/square-sigma0.1@v1",
+    ]
+    with pytest.raises(ValueError, match=r"unknown regime 'chirp' for track\(s\) paper, noise"):
+        spec_for("ekf", tmp_path, tracks=("paper", "noise"), regimes=("chirp",))
+    with pytest.raises(ValueError, match="unknown track 'noisy'; valid tracks: paper, far-init"):
+        spec_for("ekf", tmp_path, tracks=("noisy",))

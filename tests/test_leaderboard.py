@@ -6,7 +6,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench.leaderboard import comparison_table, paper_results, render, summary_table
+from kkl_bench.leaderboard import (
+    comparison_table,
+    paper_results,
+    render,
+    render_track_summary,
+    summary_table,
+    track_summary,
+)
 from kkl_bench.significance import mark_column, ratio_lower_bound
 
 
@@ -157,3 +164,31 @@ def test_comparison_gives_the_ratio_its_interval_and_a_verdict():
         ValueError, match="no results for 'nobody'; estimators in the results: high, low, same"
     ):
         comparison_table(summary, "low", "nobody")
+
+
+def test_track_summary_divides_by_the_reference_regime_of_the_paper_track():
+    paper = results_frame((("a", [0.1, 0.3]),)).assign(track="paper", regime="sinusoid")
+    chirp = results_frame((("a", [0.4, 0.4]),)).assign(track="ood-inputs", regime="chirp")
+    far = results_frame((("a", [0.2, math.inf]),)).assign(track="far-init", regime="sinusoid")
+    frame = track_summary(pd.concat([paper, chirp, far], ignore_index=True))
+    ratios = frame.set_index("track")
+    assert ratios.loc["ood-inputs", "ratio"] == pytest.approx(2.0)  # 0.4 / 0.2 on both systems
+    assert ratios.loc["far-init", "ratio"] == pytest.approx(1.0)  # 0.2 over the finite one
+    assert (ratios.loc["far-init", "n_diverged"], ratios.loc["far-init", "n_trajectories"]) == (
+        2,
+        4,
+    )
+    text = render_track_summary(frame)
+    assert "| a           | 2x           | 1x (2/4 diverged) |" in text
+
+
+def test_settling_columns_follow_each_rmse_column():
+    frame = results_frame((("a", [0.1, 0.3, 0.2]), ("b", [0.2, 0.2, 0.2]))).assign(
+        track="far-init",
+        settling_time_s=[[1.0, 3.0, 2.0]] * 2 + [[0.5, 0.7, math.inf]] * 2,
+    )
+    text = render(summary_table(frame), "markdown", settling=True)
+    header = [cell.strip() for cell in text.splitlines()[0].strip("|").split("|")]
+    assert header[2:] == ["Duffing Zero", "settle (s)", "Van der Pol Zero", "settle (s)"]
+    assert row_of(text, "a").rstrip("| ").endswith("| 2")
+    assert "| 0.7 (1/3 never) " in row_of(text, "b")

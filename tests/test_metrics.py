@@ -10,6 +10,7 @@ from kkl_bench.protocol.metrics import (
     nrmse,
     per_state_rmse,
     rmse,
+    settling_time,
     smape,
     state_scale,
     steady_state_start,
@@ -78,3 +79,22 @@ def test_perfect_estimate_scores_zero():
 def test_shape_mismatch_is_an_error():
     with pytest.raises(ValueError, match="must both be"):
         rmse(np.zeros((1, 10, 2)), np.zeros((1, 10, 3)))
+
+
+def test_settling_time_by_hand():
+    """Windows of 20 samples (1 s at 0.05 s); the threshold is 0.1 in normalized RMSE."""
+    x = np.zeros((4, 100, 2))
+    x_hat = np.zeros((4, 100, 2))
+    x_hat[0, :30] = 1.0  # the window starting at sample 29 still holds an error of 1
+    x_hat[1, -5:] = 1.0  # the last window is above the threshold: never settles
+    x_hat[2, 50] = np.nan  # diverged
+    x_hat[3, :, 0] = 0.1  # with scale 2 that is (0.1 / 2)^2 / 2 -> normalized RMSE 0.035
+    times = settling_time(x, x_hat, np.array([2.0, 1.0]), dt=0.05)
+    assert times[0] == pytest.approx(30 * 0.05)
+    assert math.isinf(times[1]) and math.isinf(times[2])
+    assert times[3] == 0.0
+
+
+def test_settling_time_needs_one_whole_window():
+    with pytest.raises(ValueError, match="shorter than one window"):
+        settling_time(np.zeros((1, 5, 1)), np.zeros((1, 5, 1)), np.ones(1), dt=0.05)

@@ -34,7 +34,8 @@ class OffsetCentre(Estimator):
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
-    """Quick-profile cells of ekf (run once) and a seeded fake row and its variant, 2 seeds."""
+    """Quick-profile cells of ekf (run once) and a seeded fake row and its variant, 2 seeds,
+    on the paper track and the far-init track."""
     directory = tmp_path_factory.mktemp("results")
     estimators.register("offset_centre")(OffsetCentre)
     try:
@@ -45,6 +46,7 @@ def results(tmp_path_factory):
             get_profile("quick"),
             seeds=(0, 1),
             results_dir=directory,
+            tracks=("paper", "far-init"),
         )
         assert run(spec).ok
     finally:  # publishing must not need the plugin
@@ -70,17 +72,28 @@ def test_publishing_twice_gives_byte_identical_files(results, published, tmp_pat
     second = {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     assert set(first) == set(second) and len(first) > 10
     assert [name for name in first if first[name] != second[name]] == []
-    assert {"README.md", "index.html", "quick.tex", "quick.csv"} <= {str(p) for p in first}
+    expected = {"README.md", "index.html", "quick.tex", "quick.csv", "quick-far-init.csv"}
+    assert expected | {"figures/relative-rmse-far-init.svg"} <= {str(p) for p in first}
 
 
-def recorded(results: Path) -> dict[tuple[str, str, str], list[list[float]]]:
-    """Per-trajectory RMSE by seed, read straight from the JSON records."""
-    cells: dict[tuple[str, str, str], list[list[float]]] = {}
-    for path in sorted(results.glob("quick/*/*/*.json")):
+def recorded(results: Path) -> dict[tuple[str, str, str, str], list[dict]]:
+    """The JSON records by (track, estimator, system, regime), one per seed, read straight
+    from the files."""
+    cells: dict[tuple[str, str, str, str], list[dict]] = {}
+    paths = [*results.glob("quick/*/*/*.json"), *results.glob("quick/*/*/*/*.json")]
+    for path in sorted(paths):
         record = json.loads(path.read_text())
-        key = (record["estimator"], record["system"], record["regime"])
-        cells.setdefault(key, []).append(record["rmse"])
+        key = (record["track"], record["estimator"], record["system"], record["regime"])
+        cells.setdefault(key, []).append(record)
     return cells
+
+
+def sections(text: str) -> dict[str, str]:
+    """The README's text per track: the paper track's before ``## Tracks``, then each
+    ``### Track `name``` section."""
+    paper, _, rest = text.partition("## Tracks")
+    found = re.findall(r"### Track `([^`]+)`\n(.*?)(?=### Track |## Provenance)", rest, flags=re.S)
+    return {"paper": paper, **dict(found)}
 
 
 def test_publishing_needs_no_plugin_installed_and_names_the_seed_free_rows(published):
@@ -95,35 +108,56 @@ def test_every_number_in_the_markdown_tables_is_the_stored_result(results, publi
     titles = {"Duffing": "duffing", "Van der Pol": "vdp", "Rossler": "rossler", "Lorenz": "lorenz"}
     regimes = {"Zero": "zero", "Const": "constant", "Sin": "sinusoid", "Sqr": "square"}
     stored = recorded(results)
-    checked = 0
-    for table in re.findall(r"(\| Estimator +\| Seeds .*?)\n\n", text, flags=re.S):
-        lines = table.splitlines()
-        header = [cell.strip() for cell in lines[0].strip("|").split("|")]
-        for line in lines[2:]:
-            cells = [cell.strip() for cell in line.strip("|").split("|")]
-            estimator = cells[0]
-            if estimator.startswith("paper:"):
-                continue
-            for title, cell in zip(header[2:], cells[2:], strict=True):
-                system_title, _, regime_title = title.rpartition(" ")
-                key = (estimator, titles[system_title], regimes[regime_title])
-                if cell == "-":  # columns of the paper's rows only
-                    assert key not in stored
+    checked = settling_checked = 0
+    assert set(sections(text)) == {"paper", "far-init"}
+    for track, section in sections(text).items():
+        for table in re.findall(r"(\| Estimator +\| Seeds .*?)\n\n", section, flags=re.S):
+            lines = table.splitlines()
+            header = [cell.strip() for cell in lines[0].strip("|").split("|")]
+            for line in lines[2:]:
+                cells = [cell.strip() for cell in line.strip("|").split("|")]
+                if cells[0].startswith("paper:"):
                     continue
-                by_seed = stored[key]
-                means = [np.mean(values) for values in by_seed]
-                assert cells[1] == str(len(by_seed))
-                number = re.match(r"[*]*([0-9.e+-]+)[*]*(?: ± ([0-9.e+-]+))? \(", cell)
-                assert number, cell
-                assert float(number[1]) == pytest.approx(np.mean(means), rel=5e-3)
-                if len(means) > 1:
-                    assert float(number[2]) == pytest.approx(
-                        np.std(means, ddof=1), rel=5e-2, abs=1e-12
-                    )
-                else:
-                    assert number[2] is None
-                checked += 1
-    assert checked == 3 * 4  # three rows, two systems x two regimes
+                key = None
+                for title, cell in zip(header[2:], cells[2:], strict=True):
+                    if title == "settle (s)":  # the median settling time of the cell before
+                        times = [t for record in stored[key] for t in record["settling_time_s"]]
+                        check_settling_cell(cell, times)
+                        settling_checked += 1
+                        continue
+                    system_title, _, regime_title = title.rpartition(" ")
+                    key = (track, cells[0], titles[system_title], regimes[regime_title])
+                    checked += check_rmse_cell(cell, cells[1], stored.get(key))
+    assert checked == 2 * 3 * 4  # two tracks, three rows, two systems x two regimes
+    assert settling_checked == 3 * 4 and "settle (s)" not in sections(text)["paper"]
+
+
+def check_settling_cell(cell: str, times: list[float]) -> None:
+    """A settle (s) cell: the median settling time, or ``never (k/n)`` if it is infinite."""
+    times = [float(t) for t in times]  # JSON stores inf as "inf"
+    never = int(np.isinf(times).sum())
+    if np.isinf(np.median(times)):
+        assert cell == f"never ({never}/{len(times)})"
+    else:
+        assert float(cell.split()[0]) == pytest.approx(np.median(times), abs=0.05)
+        assert cell.endswith(f"({never}/{len(times)} never)") == (never > 0)
+
+
+def check_rmse_cell(cell: str, seeds: str, records: list[dict] | None) -> int:
+    """Check one table cell against its records; 1 if it was checked, 0 for a ``-``."""
+    if cell == "-":  # columns of the paper's rows only
+        assert records is None
+        return 0
+    means = [np.mean(record["rmse"]) for record in records]
+    assert seeds == str(len(means))
+    number = re.match(r"[*]*([0-9.e+-]+)[*]*(?: ± ([0-9.e+-]+))? \(", cell)
+    assert number, cell
+    assert float(number[1]) == pytest.approx(np.mean(means), rel=5e-3)
+    if len(means) > 1:
+        assert float(number[2]) == pytest.approx(np.std(means, ddof=1), rel=5e-2, abs=1e-12)
+    else:
+        assert number[2] is None
+    return 1
 
 
 def test_the_page_sorts_and_filters_in_a_real_browser(published, tmp_path):

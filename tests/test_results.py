@@ -1,5 +1,6 @@
 """Per-cell records: atomic round trip with inf, loading into pandas."""
 
+import json
 import math
 import os
 
@@ -76,3 +77,25 @@ def test_records_and_kept_estimates_follow_the_umask(tmp_path):
     np.testing.assert_array_equal(loaded.x_hat, kept.x_hat)
     write_cell(tmp_path, make_cell())  # rescored without an estimate: no stale file is left
     assert read_estimate(path) is None
+
+
+def test_a_track_cell_lives_in_its_track_folder(tmp_path):
+    cell = make_cell(
+        track="noise", regime="square-sigma0.1", task="noise/duffing/square-sigma0.1@v1"
+    )
+    path = write_cell(tmp_path, cell)
+    assert path == tmp_path / "quick" / "ekf" / "duffing" / "noise" / "square-sigma0.1-seed0.json"
+    write_cell(tmp_path, make_cell())
+    table = load_results(tmp_path)
+    assert sorted(table["track"]) == ["noise", "paper"]
+
+
+def test_a_format_1_record_reads_as_a_paper_track_cell(tmp_path):
+    path = write_cell(tmp_path, make_cell())
+    record = json.loads(path.read_text())
+    for key in ("track", "settling_time_s"):
+        del record[key]
+    record["record_format"] = 1
+    path.write_text(json.dumps(record))
+    cell = read_cell(path)
+    assert (cell.track, cell.settling_time_s, cell.record_format) == ("paper", [], 1)
