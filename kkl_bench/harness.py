@@ -42,7 +42,7 @@ from kkl_bench.results import (
     read_cell,
     write_cell,
 )
-from kkl_bench.task import Profile, Task, TestSet, make_test_set
+from kkl_bench.task import Profile, Task, TestSet, make_test_set, stream_fingerprint
 from kkl_bench.tracks import TrackError, get_track
 from kkl_bench.training import TrainingData
 
@@ -297,7 +297,11 @@ def _done(spec: RunSpec, estimator: str, task: Task, seed: int) -> CellResult | 
     """The finished cell on disk, or None if it is to be (re)computed.
 
     A damaged cell file is moved aside (``<name>.corrupt``) with a warning
-    naming it and the reason, and the cell is recomputed.
+    naming it and the reason, and the cell is recomputed. So is, with a
+    warning, a cell whose random draws differ from the task's today (its track
+    file's noise, box, horizon or family was edited without a new version;
+    the stream fingerprint cannot see a changed parameter range, which is
+    what the track's version is for).
     """
     path = cell_path(
         spec.results_dir, estimator, task.system, task.regime, spec.profile.name, seed, task.track
@@ -310,7 +314,16 @@ def _done(spec: RunSpec, estimator: str, task: Task, seed: int) -> CellResult | 
         aside = move_aside(path)
         warnings.warn(f"{error}; moved to {aside.name}, recomputing the cell", stacklevel=2)
         return None
-    return cell if cell.status == "ok" else None
+    if cell.status != "ok":
+        return None
+    if cell.stream_fingerprint != stream_fingerprint(task, cell.n_test):
+        warnings.warn(
+            f"{path} was scored on other test trajectories than {task.id} draws now (was its "
+            "track file edited without a new version?); recomputing the cell",
+            stacklevel=2,
+        )
+        return None
+    return cell
 
 
 def plan(spec: RunSpec) -> tuple[list[Job], list[CellResult]]:

@@ -153,22 +153,31 @@ def _sha256(*arrays: np.ndarray) -> str:
 def make_test_set(task: Task, n_test: int) -> TestSet:
     """:func:`build_test_set`, cached in memory (its arrays are read-only)."""
     root_seed(task.system, task.regime, "test", task.track)  # refused if sealed
-    return _cached_test_set(task, n_test)
+    return _cached_test_set(task, task.definition(), n_test)
 
 
-def build_test_set(task: Task, n_test: int) -> TestSet:
-    """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
+@dataclass(frozen=True)
+class _Draws:
+    """The random draws of a test set, stacked: ``x0: (n, n_x)``, ``r: (n, m)``,
+    ``process_noise: (n, steps - 1, n_x)``, ``measurement_noise: (n, steps, 1)``."""
 
-    Trajectory ``i`` is the same whatever ``n_test`` is. Each draws, in this
-    order, its initial state from the task's box, the regime's uniform
-    numbers, the process noise and the measurement noise (with the task's
-    standard deviations).
-    """
+    x0: np.ndarray
+    r: np.ndarray
+    process_noise: np.ndarray
+    measurement_noise: np.ndarray
+
+    def fingerprint(self) -> str:
+        return _sha256(self.x0, self.r, self.process_noise, self.measurement_noise)
+
+
+def _draw(task: Task, n_test: int) -> _Draws:
+    """The first ``n_test`` trajectories' draws of ``task``'s test stream, in the protocol's
+    order: initial state from the task's box, the regime's uniform numbers, the process
+    noise and the measurement noise (with the task's standard deviations)."""
     definition = task.definition()
     system = systems.get(task.system)()
-    regime = definition.regime()
     low, high = definition.x0_box.for_system(system)
-    t = DT * np.arange(definition.n_samples)
+    n_numbers = definition.regime().n_numbers(DT * np.arange(definition.n_samples))
     root = root_seed(task.system, task.regime, "test", task.track)
     draws = [
         draw_trajectory(
@@ -178,16 +187,43 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
             definition.n_samples,
             definition.sigma_w,
             definition.sigma_v,
-            regime.n_numbers(t),
+            n_numbers,
         )
         for i in range(n_test)
     ]
-    x0 = np.stack([d.x0 for d in draws])
-    r = np.stack([d.r for d in draws])
-    process_noise = np.stack([d.process_noise for d in draws])
-    measurement_noise = np.stack([d.measurement_noise for d in draws])[..., None]
-    params = regime.params_from_uniform(r)
-    data = simulate(system, x0, regime.signal(t, params), DT, process_noise, measurement_noise)
+    return _Draws(
+        x0=np.stack([d.x0 for d in draws]),
+        r=np.stack([d.r for d in draws]),
+        process_noise=np.stack([d.process_noise for d in draws]),
+        measurement_noise=np.stack([d.measurement_noise for d in draws])[..., None],
+    )
+
+
+def stream_fingerprint(task: Task, n_test: int) -> str:
+    """The ``stream_fingerprint`` of ``task``'s first ``n_test`` test trajectories, without
+    simulating them (what a stored cell's test set must match)."""
+    return _stream_fingerprint(task, task.definition(), n_test)
+
+
+@functools.lru_cache(maxsize=256)
+def _stream_fingerprint(task: Task, definition: TaskDefinition, n_test: int) -> str:
+    """Cached by the task's definition too: a track read anew may define it differently."""
+    return _draw(task, n_test).fingerprint()
+
+
+def build_test_set(task: Task, n_test: int) -> TestSet:
+    """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
+
+    Trajectory ``i`` is the same whatever ``n_test`` is (draws: :func:`_draw`).
+    """
+    definition = task.definition()
+    system = systems.get(task.system)()
+    regime = definition.regime()
+    draws = _draw(task, n_test)
+    t = DT * np.arange(definition.n_samples)
+    params = regime.params_from_uniform(draws.r)
+    u = regime.signal(t, params)
+    data = simulate(system, draws.x0, u, DT, draws.process_noise, draws.measurement_noise)
     for array in (data.t, data.u, data.x, data.y, params):
         array.flags.writeable = False
     return TestSet(
@@ -195,9 +231,11 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
         data=data,
         regime_params=params,
         state_scale=state_scale(data.x),
-        stream_fingerprint=_sha256(x0, r, process_noise, measurement_noise),
+        stream_fingerprint=draws.fingerprint(),
         fingerprint=_sha256(data.t, data.u, data.x, data.y),
     )
 
 
-_cached_test_set = functools.lru_cache(maxsize=64)(build_test_set)
+@functools.lru_cache(maxsize=64)
+def _cached_test_set(task: Task, definition: TaskDefinition, n_test: int) -> TestSet:
+    return build_test_set(task, n_test)

@@ -129,3 +129,32 @@ def test_regimes_are_task_names_of_the_selected_tracks(tmp_path):
         spec_for("ekf", tmp_path, tracks=("paper", "noise"), regimes=("chirp",))
     with pytest.raises(ValueError, match="unknown track 'noisy'; valid tracks: paper, far-init"):
         spec_for("ekf", tmp_path, tracks=("noisy",))
+
+
+TRACK = """
+name = "mine"
+version = 1
+systems = ["duffing"]
+
+[[task]]
+name = "slow"
+family = "sinusoid"
+measurement_noise = {sigma}
+"""
+
+
+def test_a_cell_of_an_edited_track_is_recomputed_with_a_warning(
+    tmp_path, monkeypatch, register_estimator
+):
+    register_estimator("centre_ok", variant(""))
+    for version, sigma in (("before", 0.01), ("after", 0.02)):
+        folder = tmp_path / version
+        folder.mkdir()
+        (folder / "mine.toml").write_text(TRACK.format(sigma=sigma))
+    spec = dict(tracks=("mine",), regimes=None, results_dir=tmp_path / "results")
+    monkeypatch.setenv("KKL_BENCH_TRACKS", str(tmp_path / "before"))
+    assert len(run(spec_for("centre_ok", tmp_path, **spec)).scored) == 1
+    assert len(run(spec_for("centre_ok", tmp_path, **spec)).cached) == 1
+    monkeypatch.setenv("KKL_BENCH_TRACKS", str(tmp_path / "after"))
+    with pytest.warns(UserWarning, match="slow-seed0.json was scored on other test trajectories"):
+        assert len(run(spec_for("centre_ok", tmp_path, **spec)).scored) == 1
