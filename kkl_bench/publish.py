@@ -119,10 +119,22 @@ def _settling(name: str) -> bool:
     return track is not None and track.settling
 
 
-def _tracks_markdown(tracks: dict[str, pd.DataFrame], relative: pd.DataFrame) -> str:
+def _tracks_markdown(
+    tracks: dict[str, pd.DataFrame], relative: pd.DataFrame, figure_names: list[str]
+) -> str:
     """The README section of the tracks other than the paper's (empty if there are none)."""
     if not tracks:
         return ""
+    trajectories = {
+        name: "\n"
+        + "\n".join(
+            f"![{figure}](figures/{figure}.png)"
+            for figure in figure_names
+            if figure.startswith(f"track-{name}-")
+        )
+        + "\n"
+        for name in tracks
+    }
     sections = []
     for name, summary in tracks.items():
         track = _track(name)
@@ -144,7 +156,7 @@ defines every task.{settling}
 
 {render(summary, "markdown", settling=_settling(name))}
 ![{name}: RMSE relative to the UKF](figures/relative-rmse-{name}.png)
-
+{trajectories.get(name, "")}
 """
         )
     return f"""## Tracks: where methods break
@@ -237,7 +249,7 @@ below them the estimation-error norm on a log scale.
 
 {cells}
 
-{_tracks_markdown(tracks, relative)}## Provenance
+{_tracks_markdown(tracks, relative, figure_names)}## Provenance
 
 | what | value |
 |---|---|
@@ -383,7 +395,9 @@ def _ours_with_relative(summary: pd.DataFrame) -> pd.DataFrame:
     return ours
 
 
-def _tracks_html(tracks: dict[str, pd.DataFrame], relative: pd.DataFrame) -> str:
+def _tracks_html(
+    tracks: dict[str, pd.DataFrame], relative: pd.DataFrame, figure_names: list[str]
+) -> str:
     """The page's section of the tracks other than the paper's (empty if there are none)."""
     if not tracks:
         return ""
@@ -416,6 +430,11 @@ def _tracks_html(tracks: dict[str, pd.DataFrame], relative: pd.DataFrame) -> str
             _html_table(ours, columns, f"track-{name}", ours["mark"]),
             f'<figure><img src="figures/relative-rmse-{name}.svg" '
             f'alt="{html.escape(name)}: RMSE relative to the UKF"></figure>',
+            *(
+                f'<figure><img src="figures/{figure}.svg" alt="{figure}"></figure>'
+                for figure in figure_names
+                if figure.startswith(f"track-{name}-")
+            ),
         ]
     return "\n".join(parts)
 
@@ -487,7 +506,7 @@ def _page(
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>
 <figure><img src="figures/cost-accuracy.svg" alt="estimation cost against RMSE"></figure>
 {trajectory_figures}
-{_tracks_html(tracks, relative)}
+{_tracks_html(tracks, relative, figure_names)}
 <h2>Provenance</h2>
 <table><tbody>{provenance}</tbody></table>
 <h2>Reproduce</h2>
@@ -517,6 +536,8 @@ def draw_figures(
         heatmap = figures.relative_rmse_heatmap(of_track, f"Track {name}: ")
         figures.save(heatmap, directory / f"relative-rmse-{name}")
         names.append(f"relative-rmse-{name}")
+        if _settling(name):  # where the first test trajectory starts matters: draw it
+            names += _track_trajectories(name, results_dir, profile, directory)
     figures.save(figures.cost_accuracy_figure(summary), directory / "cost-accuracy")
     names += ["relative-rmse", "cost-accuracy"]
     for system in SYSTEM_TITLES:
@@ -526,6 +547,22 @@ def draw_figures(
                 continue
             name = f"trajectory-{system}-{regime}"
             title = f"{SYSTEM_TITLES[system]}, {regime} input"
+            figures.save(figures.trajectory_figure(title, cell), directory / name)
+            names.append(name)
+    return names
+
+
+def _track_trajectories(track: str, results_dir: Path, profile: str, directory: Path) -> list[str]:
+    """Test trajectory 0 of ``track``'s first task on every system; returns the names drawn."""
+    kept = kept_estimates(results_dir, profile, track)
+    declared = _track(track)
+    first = declared.task_names()[0] if declared else min(r for _, _, r in kept)
+    names = []
+    for system in SYSTEM_TITLES:
+        cell = {e: k for (e, s, r), k in kept.items() if (s, r) == (system, first)}
+        if cell:
+            name = f"track-{track}-{system}-{first}"
+            title = f"Track {track}: {SYSTEM_TITLES[system]}, {first} input"
             figures.save(figures.trajectory_figure(title, cell), directory / name)
             names.append(name)
     return names

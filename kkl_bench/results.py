@@ -371,13 +371,17 @@ def _from_json(value: Any) -> Any:
     return value
 
 
-def kept_estimates(results_dir: Path, profile: str) -> dict[tuple[str, str, str], KeptEstimate]:
-    """``(estimator, system, regime) -> KeptEstimate`` of the paper track's cells, from the
-    lowest seed that kept one."""
+def kept_estimates(
+    results_dir: Path, profile: str, track: str = PAPER_TRACK
+) -> dict[tuple[str, str, str], KeptEstimate]:
+    """``(estimator, system, regime) -> KeptEstimate`` of ``track``'s cells, from the lowest
+    seed that kept one."""
     kept = {}
-    for path in sorted(Path(results_dir, profile).glob("*/*/*.json")):
+    pattern = "*/*/*.json" if track == PAPER_TRACK else f"*/*/{track}/*.json"
+    for path in sorted(Path(results_dir, profile).glob(pattern)):
         regime, _, seed = path.stem.rpartition("-seed")
-        key = (path.parent.parent.name, path.parent.name, regime)
+        folder = path.parent if track == PAPER_TRACK else path.parent.parent
+        key = (folder.parent.name, folder.name, regime)
         if key in kept and kept[key][0] <= int(seed):
             continue
         estimate = read_estimate(path)
