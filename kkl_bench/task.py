@@ -223,7 +223,15 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
     t = DT * np.arange(definition.n_samples)
     params = regime.params_from_uniform(draws.r)
     u = regime.signal(t, params)
-    data = simulate(system, draws.x0, u, DT, draws.process_noise, draws.measurement_noise)
+    with np.errstate(over="ignore", invalid="ignore"):
+        data = simulate(system, draws.x0, u, DT, draws.process_noise, draws.measurement_noise)
+    escaped = np.flatnonzero(~np.isfinite(data.x).all(axis=(1, 2)))
+    if escaped.size:
+        raise ValueError(
+            f"task {task.id}: the true state of test trajectories {escaped.tolist()} is not "
+            "finite (it escapes to infinity); the track's x0 box or inputs leave the system's "
+            "basin"
+        )
     for array in (data.t, data.u, data.x, data.y, params):
         array.flags.writeable = False
     return TestSet(

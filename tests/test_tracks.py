@@ -58,11 +58,11 @@ def test_noise_track_measures_with_its_own_noise(sigma):
     assert np.std(residual) == pytest.approx(sigma, rel=0.05)
 
 
-def test_far_init_draws_from_three_times_the_paper_box():
+def test_far_init_draws_from_three_times_the_paper_box_rossler_twice():
     x0 = make_test_set(Task("duffing", "zero", track="far-init"), 20).data.x[:, 0]
     assert np.all(np.abs(x0) <= 3.0) and np.any(np.abs(x0) > 1.0)
     rossler = make_test_set(Task("rossler", "sinusoid", track="far-init"), 20).data.x[:, 0]
-    assert np.all(np.abs(rossler[:, :2]) <= 45.0) and np.any(np.abs(rossler[:, :2]) > 15.0)
+    assert np.all(np.abs(rossler[:, :2]) <= 30.0) and np.any(np.abs(rossler[:, :2]) > 15.0)
     assert np.all((rossler[:, 2] >= 0.0) & (rossler[:, 2] <= 3.0)) and rossler[:, 2].max() > 1.0
 
 
@@ -199,3 +199,23 @@ def test_a_track_from_the_environment_runs_without_code(tmp_path, monkeypatch):
     test_set = make_test_set(Task("duffing", "slow", version=2, track="mine"), 2)
     assert test_set.task.id == "mine/duffing/slow@v2"
     assert math.isclose(np.abs(test_set.data.u).max(), 1.0, rel_tol=0.5)
+
+
+@pytest.mark.parametrize("track", ["ood-inputs", "noise", "far-init"])
+def test_every_track_test_set_has_a_finite_truth(track):
+    for system in get_track(track).systems:
+        for task in get_track(track).task_names():
+            data = make_test_set(Task(system, task, track=track), 20).data
+            assert np.isfinite(data.x).all() and np.isfinite(data.y).all()
+
+
+def test_a_box_that_sends_the_truth_to_infinity_is_an_error(tmp_path, monkeypatch):
+    (tmp_path / "wide.toml").write_text(
+        'name = "wide"\nversion = 1\nsystems = ["rossler"]\n\n[[task]]\nname = "zero"\n'
+        'family = "zero"\nx0_box = {rossler = {low = [40.0, 40.0, 2.0], high = [45.0, 45.0, 3.0]}}\n'
+    )
+    monkeypatch.setenv(TRACKS_ENV, str(tmp_path))
+    with pytest.raises(
+        ValueError, match=r"task wide/rossler/zero@v1: the true state of test trajectories \[0"
+    ):
+        make_test_set(Task("rossler", "zero", track="wide"), 3)
