@@ -110,5 +110,14 @@ def test_builtins_are_discovered_through_their_entry_points():
         "rossler",
         "lorenz",
     }
-    assert regimes.names() == ["constant", "sinusoid", "square", "zero"]
+    assert regimes.names() == [
+        "chirp",
+        "constant",
+        "multisine",
+        "ramp",
+        "random_steps",
+        "sinusoid",
+        "square",
+        "zero",
+    ]
     assert {"ekf", "ukf"} <= set(estimators.names())
