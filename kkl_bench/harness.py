@@ -3,7 +3,8 @@
 For each (estimator, system, seed) the harness builds the estimator, fits it
 once with a :class:`~kkl_bench.estimator.FitContext` (the paper's noise, x0
 box and horizon, whatever the tracks), then scores it on the test sets of
-every requested track's tasks: tracks test generalization, never retraining. Each cell is written atomically the moment it
+every requested track's tasks: tracks test generalization, never retraining.
+Each cell is written atomically the moment it
 is scored, with the truth and the estimate of its first test trajectory
 beside it; a cell already on disk is skipped unless ``force`` is set.
 Estimators that do not depend on the seed run with the first seed only. An

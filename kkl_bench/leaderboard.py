@@ -12,9 +12,10 @@ trajectory diverged reads ``diverged (k/n), median m`` (over all seeds, with
 the median RMSE of all its trajectories); a cell whose estimator failed reads
 ``error``. Tables show one track at a time (callers select its cells);
 tracks that declare it add the settling time beside each RMSE, and
-:func:`track_summary` compares each track with the paper track. The paper's published numbers can be shown
-as reference rows (never marked: they come from other test sets). Nothing
-here recomputes a metric: it reads what the harness recorded.
+:func:`track_summary` compares each track with the paper track. The paper's
+published numbers can be shown as reference rows (never marked: they come
+from other test sets). Nothing here recomputes a metric: it reads what the
+harness recorded.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from tabulate import tabulate
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.results import mean_and_std
 from kkl_bench.significance import compare, mark_column
-from kkl_bench.tracks import TrackError, get_track
+from kkl_bench.tracks import find_track
 
 FORMATS = ("markdown", "latex", "csv")
 PAPER_PREFIX = "paper:"
@@ -307,11 +308,8 @@ def task_order(summary: pd.DataFrame) -> list[str]:
     """The regimes (tasks) of ``summary``, one track's, in its track file's order (the
     paper's order for the paper track; sorted if the track is not installed here)."""
     present = set(summary["regime"])
-    track = summary["track"].iloc[0] if "track" in summary else PAPER_TRACK
-    try:
-        declared = get_track(track).task_names()
-    except TrackError:
-        declared = list(REGIME_TITLES)
+    track = find_track(summary["track"].iloc[0] if "track" in summary else PAPER_TRACK)
+    declared = track.task_names() if track else list(REGIME_TITLES)
     return [name for name in declared if name in present] + sorted(present - set(declared))
 
 
@@ -502,10 +500,10 @@ def _finite_mean(rmse_trajectories: list[list[float]]) -> float:
 def _reference(track: str, regime: str) -> str:
     """The paper task ``track``'s task ``regime`` is compared with (its own name if the
     track is not installed here)."""
-    try:
-        return get_track(track).task(regime).reference
-    except TrackError:
+    declared = find_track(track)
+    if declared is None or regime not in declared.task_names():
         return regime
+    return declared.task(regime).reference
 
 
 def track_summary(results: pd.DataFrame) -> pd.DataFrame:

@@ -45,7 +45,7 @@ from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators
 from kkl_bench.results import kept_estimates
-from kkl_bench.tracks import Track, TrackError, get_track
+from kkl_bench.tracks import find_track
 
 RESULTS_LINK = "results"
 """Where the published folder keeps its raw results (relative to it)."""
@@ -106,16 +106,8 @@ sets, shown for reference and never marked. `kkl_bench/significance.py` has
 the exact procedure."""
 
 
-def _track(name: str) -> Track | None:
-    """The installed declaration of track ``name`` (None if this install does not have it)."""
-    try:
-        return get_track(name)
-    except TrackError:
-        return None
-
-
 def _settling(name: str) -> bool:
-    track = _track(name)
+    track = find_track(name)
     return track is not None and track.settling
 
 
@@ -137,7 +129,7 @@ def _tracks_markdown(
     }
     sections = []
     for name, summary in tracks.items():
-        track = _track(name)
+        track = find_track(name)
         description = f"{track.description} " if track else ""
         settling = (
             f"\n\nBeside each RMSE, `settle (s)` is the median over trajectories of the "
@@ -423,7 +415,7 @@ def _tracks_html(
         columns = dict(RESULT_COLUMNS)
         if _settling(name):
             columns.update(SETTLING_COLUMNS)
-        track = _track(name)
+        track = find_track(name)
         parts += [
             f"<h3>Track <code>{html.escape(name)}</code></h3>",
             f"<p>{html.escape(track.description)}</p>" if track else "",
@@ -555,7 +547,7 @@ def draw_figures(
 def _track_trajectories(track: str, results_dir: Path, profile: str, directory: Path) -> list[str]:
     """Test trajectory 0 of ``track``'s first task on every system; returns the names drawn."""
     kept = kept_estimates(results_dir, profile, track)
-    declared = _track(track)
+    declared = find_track(track)
     first = declared.task_names()[0] if declared else min(r for _, _, r in kept)
     names = []
     for system in SYSTEM_TITLES:

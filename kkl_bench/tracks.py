@@ -355,3 +355,9 @@ def get_track(name: str) -> Track:
     if name not in tracks:
         raise TrackError(f"unknown track {name!r}; valid tracks: {', '.join(tracks)}")
     return tracks[name]
+
+
+def find_track(name: str) -> Track | None:
+    """The track ``name`` if this install declares it, else None (stored results may come
+    from a track file this install does not have)."""
+    return load_tracks().get(name)
