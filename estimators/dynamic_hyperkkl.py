@@ -24,6 +24,7 @@ from torch import nn
 
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.hyper import make_head
+from kkl_bench.kkl.latent import latent_drift
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative, normalized_field_rms
 from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
@@ -127,7 +128,10 @@ class DynamicHyperKKL(KKLEstimator):
             t_now, dt_field = directional_derivative(encoder, states, field, theta_now)
             t_next = encoder(states, theta_next)
             residual = (
-                dt_field + (t_next - t_now) / context.dt - t_now @ a.T - system.h(states) @ b.T
+                dt_field
+                + (t_next - t_now) / context.dt
+                - latent_drift(t_now, a)
+                - system.h(states) @ b.T
             )
             reconstruction = decoder.output_difference(decoder(t_now, phi_now) - states)
             inference = decoder.output_difference(

@@ -240,6 +240,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_drawing_arguments(plot, Path("."), "figures go to DIR/figures/")
 
+    scaling = commands.add_parser(
+        "scaling",
+        help="the Lorenz-96 scaling study: fit time, online cost and RMSE against n",
+        description="From the more-systems cells of Lorenz-96 (n = 5, 10, 20, 40) and the "
+        "models their run cached, time every fitted estimator's estimate side by side "
+        "(batch 20 and 1, one thread) and write scaling.md, scaling.csv and "
+        "figures/scaling.png|svg with the fitted exponent of each cost. Run "
+        "`kkl-bench run --track more-systems --estimator all` first, with the same --cache.",
+    )
+    _add_drawing_arguments(scaling, Path("leaderboard"), "the folder to write")
+    _add_cache_argument(scaling)
+    scaling.add_argument(
+        "--seed", type=_seed, default=0, help="the training seed whose models are timed (default 0)"
+    )
+
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")
     cache.add_argument("action", choices=("info", "clear"))
     _add_cache_argument(cache)
@@ -403,6 +418,30 @@ def _plot(args: argparse.Namespace) -> int:
     return _status(args, damaged)
 
 
+def _scaling(args: argparse.Namespace) -> int:
+    from kkl_bench import scaling
+
+    results, damaged = _load(args)
+    cells = scaling.cell_summary(results)
+    profile = results["profile"].iloc[0]
+    spec = harness.RunSpec(
+        estimators=tuple(sorted(set(cells["estimator"]))),
+        systems=tuple(scaling.system_name(n) for n in sorted(set(cells["n"]))),
+        regimes=(scaling.REGIME,),
+        tracks=(scaling.TRACK,),
+        profile=get_profile(profile),
+        cache_dir=args.cache or default_cache_dir(),
+    )
+    ok = cells[cells["status"] == "ok"]
+    fitted = {
+        (row.estimator, row.n): scaling.fit_from_cache(spec, row.estimator, row.n, args.seed)
+        for row in tqdm(list(ok.itertuples()), desc="loading fitted models", unit="model")
+    }
+    written = scaling.write_study(cells, scaling.time_estimators(spec, fitted), profile, args.out)
+    print(f"wrote {', '.join(map(str, written))}")
+    return _status(args, damaged)
+
+
 def _cache(args: argparse.Namespace) -> int:
     root = args.cache or default_cache_dir()
     if args.action == "clear":
@@ -441,6 +480,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "compare": lambda: _compare(args),
         "publish": lambda: _publish(args),
         "plot": lambda: _plot(args),
+        "scaling": lambda: _scaling(args),
         "check": lambda: _check(args),
     }
     try:

@@ -207,3 +207,36 @@ def save(figure, path_without_suffix: Path) -> list[Path]:
         paths.append(path)
     plt.close(figure)
     return paths
+
+
+def scaling_figure(frame: pd.DataFrame, costs: Mapping[str, str], fitted: pd.DataFrame):
+    """Log-log panels of each cost in ``costs`` (column -> title) against the state dimension.
+
+    ``frame``: the scaling study (:func:`kkl_bench.scaling.scaling_frame`), ``fitted``:
+    its exponents per estimator (:func:`kkl_bench.scaling.exponents`), shown in the legends.
+    """
+    plt = pyplot()
+    names = sorted(set(frame["estimator"]))
+    colors = _colors(names)
+    figure, axes = plt.subplots(1, len(costs), figsize=(13, 3.8), constrained_layout=True)
+    fitted = fitted.set_index("estimator")
+    for axis, (column, label) in zip(axes, costs.items(), strict=True):
+        for name in names:
+            rows_of = frame[(frame["estimator"] == name) & np.isfinite(frame[column])]
+            if rows_of.empty:
+                continue
+            p = fitted.loc[name, column]
+            axis.loglog(
+                rows_of["n"],
+                rows_of[column],
+                marker="o",
+                color=colors[name],
+                label=f"{name} (p = {p:.2f})" if math.isfinite(p) else name,
+            )
+        axis.set_xlabel("state dimension n")
+        axis.set_title(label)
+        axis.set_xticks(sorted(set(frame["n"])), [str(n) for n in sorted(set(frame["n"]))])
+        axis.grid(alpha=0.3, which="both")
+        axis.legend(fontsize=6)
+    figure.suptitle("Lorenz-96: cost against the state dimension")
+    return figure

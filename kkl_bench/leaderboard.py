@@ -41,7 +41,11 @@ SYSTEM_TITLES = {
     "vdp": "Van der Pol",
     "rossler": "Rossler",
     "lorenz": "Lorenz",
+    "fitzhugh_nagumo": "FitzHugh-Nagumo",
+    "chua": "Chua",
+    **{f"lorenz96-n{n}": f"Lorenz-96 n={n}" for n in (5, 10, 20, 40)},
 }
+"""Table and figure titles of the built-in systems, in the order tables show them."""
 REGIME_TITLES = {"zero": "Zero", "constant": "Const", "sinusoid": "Sin", "square": "Sqr"}
 MARKUP = {
     "markdown": {"best": ("**", "**"), "tied": ("*", "*")},
@@ -514,8 +518,9 @@ def track_summary(results: pd.DataFrame) -> pd.DataFrame:
     RMSE on the same system under the task's reference regime (declared in
     the track file); ``ratio`` is the geometric mean of these over the
     track's cells. ``n_diverged`` and ``n_trajectories`` count the track's
-    diverged and scored trajectories. Columns: estimator, track, ratio,
-    n_cells, n_diverged, n_trajectories.
+    diverged and scored trajectories. A track with no cell to compare (one of
+    other systems, such as ``more-systems``) is left out. Columns: estimator,
+    track, ratio, n_cells, n_diverged, n_trajectories.
     """
     if "track" not in results:
         results = results.assign(track=PAPER_TRACK)
@@ -552,9 +557,11 @@ def track_summary(results: pd.DataFrame) -> pd.DataFrame:
                     "n_trajectories": scored,
                 }
             )
-    return pd.DataFrame(
+    frame = pd.DataFrame(
         rows, columns=["estimator", "track", "ratio", "n_cells", "n_diverged", "n_trajectories"]
     )
+    comparable = frame.groupby("track")["n_cells"].transform("sum") > 0
+    return frame[comparable].reset_index(drop=True)
 
 
 def render_track_summary(frame: pd.DataFrame) -> str:

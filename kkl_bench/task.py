@@ -159,7 +159,7 @@ def make_test_set(task: Task, n_test: int) -> TestSet:
 @dataclass(frozen=True)
 class _Draws:
     """The random draws of a test set, stacked: ``x0: (n, n_x)``, ``r: (n, m)``,
-    ``process_noise: (n, steps - 1, n_x)``, ``measurement_noise: (n, steps, 1)``."""
+    ``process_noise: (n, steps - 1, n_x)``, ``measurement_noise: (n, steps, n_y)``."""
 
     x0: np.ndarray
     r: np.ndarray
@@ -188,6 +188,7 @@ def _draw(task: Task, n_test: int) -> _Draws:
             definition.sigma_w,
             definition.sigma_v,
             n_numbers,
+            system.n_y,
         )
         for i in range(n_test)
     ]
@@ -195,7 +196,7 @@ def _draw(task: Task, n_test: int) -> _Draws:
         x0=np.stack([d.x0 for d in draws]),
         r=np.stack([d.r for d in draws]),
         process_noise=np.stack([d.process_noise for d in draws]),
-        measurement_noise=np.stack([d.measurement_noise for d in draws])[..., None],
+        measurement_noise=np.stack([d.measurement_noise for d in draws]),
     )
 
 

@@ -15,7 +15,12 @@ from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomo
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.hyper import ChunkedHead, LowRankHead, make_head
-from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
+from kkl_bench.kkl.latent import (
+    LatentObserver,
+    latent_drift,
+    latent_matrices,
+    spread_eigenvalues,
+)
 from kkl_bench.kkl.networks import NormalizedMLP, affine_normalization
 from kkl_bench.kkl.pde import directional_derivative, pde_residual
 from kkl_bench.kkl.windows import sliding_windows
@@ -587,3 +592,21 @@ def test_fit_reports_count_the_optimizer_steps_and_samples_each_phase_spent(fitt
     for name, phase2 in second.items():
         spent = fitted_family[name].fit_report()["spent"]
         assert spent == {"phase1": phase1, "phase2": phase2}, name
+
+
+def test_diagonal_latent_recursion_gives_the_numbers_of_the_matrix_product():
+    a, b = latent_matrices(spread_eigenvalues(9, 1.0, 30.0), n_y=3)
+    y = np.random.default_rng(0).normal(size=(4, 60, 3))
+
+    def injection(k, z):
+        return np.sin(z + k)
+
+    diagonal = LatentObserver(a, b, 0.05)
+    dense = LatentObserver(a, b, 0.05)
+    dense._diagonal = False
+    np.testing.assert_array_equal(diagonal.run(y, injection), dense.run(y, injection))
+    z = torch.as_tensor(y[:, 0, :1].repeat(9, axis=1))
+    assert torch.equal(latent_drift(z, torch.as_tensor(a)), z @ torch.as_tensor(a).T)
+    assert np.array_equal(
+        latent_drift(z.numpy(), a + np.eye(9, k=1)), z.numpy() @ (a + np.eye(9, k=1)).T
+    )

@@ -170,7 +170,11 @@ def test_track_summary_divides_by_the_reference_regime_of_the_paper_track():
     paper = results_frame((("a", [0.1, 0.3]),)).assign(track="paper", regime="sinusoid")
     chirp = results_frame((("a", [0.4, 0.4]),)).assign(track="ood-inputs", regime="chirp")
     far = results_frame((("a", [0.2, math.inf]),)).assign(track="far-init", regime="sinusoid")
-    frame = track_summary(pd.concat([paper, chirp, far], ignore_index=True))
+    other_systems = results_frame((("a", [0.2, 0.2]),)).assign(
+        track="more-systems", regime="sinusoid", system="chua"
+    )
+    frame = track_summary(pd.concat([paper, chirp, far, other_systems], ignore_index=True))
+    assert list(frame["track"]) == ["ood-inputs", "far-init"]  # nothing to compare chua with
     ratios = frame.set_index("track")
     assert ratios.loc["ood-inputs", "ratio"] == pytest.approx(2.0)  # 0.4 / 0.2 on both systems
     assert ratios.loc["far-init", "ratio"] == pytest.approx(1.0)  # 0.2 over the finite one

@@ -7,7 +7,19 @@ from scipy.integrate import solve_ivp
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian, simulate
 from kkl_bench.registry import regimes, systems
 
-SYSTEM_NAMES = ["duffing", "vdp", "rossler", "lorenz"]
+SYSTEM_NAMES = [
+    "duffing",
+    "vdp",
+    "rossler",
+    "lorenz",
+    "fitzhugh_nagumo",
+    "chua",
+    "lorenz96-n5",
+    "lorenz96-n10",
+]
+NONSMOOTH = {"chua"}
+"""Systems whose vector field has kinks (Chua's diode at |x| = 1): RK4 is only second order
+across them."""
 
 
 def held_input_reference(system, x0, u, dt):
@@ -39,8 +51,9 @@ def test_rk4_matches_solve_ivp_with_fourth_order_convergence(name):
         x = simulate(system, x0[None], u[None], dt).x[0]
         errors.append(np.abs(x - held_input_reference(system, x0, u, dt)).max())
     assert errors[1] < 1e-5 * max(1.0, np.abs(x).max())
-    # halving the step divides the global error by about 2^4 = 16
-    assert 10 < errors[0] / errors[1] < 24
+    # halving the step divides the global error by about 2^4 = 16 (2^2 = 4 across kinks)
+    low = 3 if name in NONSMOOTH else 10
+    assert low < errors[0] / errors[1] < 24
 
 
 @pytest.mark.parametrize("name", SYSTEM_NAMES)

@@ -30,7 +30,12 @@ from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import Box, ObserverData, burn_in_steps, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
-from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
+from kkl_bench.kkl.latent import (
+    LatentObserver,
+    latent_drift,
+    latent_matrices,
+    spread_eigenvalues,
+)
 from kkl_bench.kkl.networks import NormalizedMLP, seeded
 from kkl_bench.kkl.optimize import counting, minimize, resumable
 from kkl_bench.kkl.pde import normalized_field_rms, pde_residual
@@ -353,7 +358,7 @@ def map_quality(context: FitContext, model: AutonomousModel, n: int = 8) -> dict
         with torch.no_grad():
             reconstruction = model.decoder(model.encoder(x)) - x
             residual = pde_residual(model.encoder, x, system.f(x), system.h(x), a, b)
-            target = model.encoder(x) @ a.T + system.h(x) @ b.T
+            target = latent_drift(model.encoder(x), a) + system.h(x) @ b.T
         quality[f"reconstruction_rmse_{label}"] = reconstruction.pow(2).sum(-1).mean().sqrt().item()
         quality[f"pde_residual_{label}"] = (
             (residual.pow(2).sum(-1).mean() / target.pow(2).sum(-1).mean()).sqrt().item()

@@ -27,18 +27,20 @@ def spread_eigenvalues(n_z: int, slowest: float, fastest: float) -> np.ndarray:
 
 
 def latent_matrices(rates: np.ndarray, n_y: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """``A = -diag(rates)`` (Hurwitz) and ``B = 1``: controllable for distinct rates (PBH).
+    """``A = -diag(rates)`` (Hurwitz) and ``B`` assigning latent mode ``i`` to output ``i mod n_y``.
 
-    Returns ``A: (n_z, n_z)`` and ``B: (n_z, n_y)``.
+    With one output ``B = 1``; with several, each output drives every
+    ``n_y``-th mode, so each sees rates spread over the whole range. A diagonal
+    ``A`` with distinct rates and a ``B`` without a zero row is controllable
+    (Popov-Belevitch-Hautus test). Returns ``A: (n_z, n_z)`` and ``B: (n_z, n_y)``.
     """
     rates = np.asarray(rates, dtype=float)
     if np.any(rates <= 0) or len(np.unique(rates)) != len(rates):
         raise ValueError(f"latent rates must be distinct and positive, got {rates}")
-    a = -np.diag(rates)
-    b = np.ones((len(rates), n_y))
-    controllability = np.hstack([np.linalg.matrix_power(a, i) @ b for i in range(len(rates))])
-    assert np.linalg.matrix_rank(controllability) == len(rates), "(A, B) must be controllable"
-    return a, b
+    n_z = len(rates)
+    b = np.zeros((n_z, n_y))
+    b[np.arange(n_z), np.arange(n_z) % n_y] = 1.0
+    return -np.diag(rates), b
 
 
 class LatentObserver:
@@ -63,6 +65,10 @@ class LatentObserver:
         self.gamma0 = top[:, n_z : n_z + n_y]
         self.gamma1 = top[:, n_z + n_y :] / dt
         self.injection_gain = np.linalg.solve(a, self.phi - np.eye(n_z))
+        # With a diagonal A (every built-in design) Phi and the injection gain are
+        # diagonal too: the recursion is then elementwise, n_z times cheaper than a
+        # matrix product (1620 times at Lorenz-96 n = 40), with the same numbers.
+        self._diagonal = _is_diagonal(a)
 
     @property
     def n_z(self) -> int:
@@ -84,8 +90,28 @@ class LatentObserver:
         z = np.empty((y.shape[0], y.shape[1], self.n_z))
         z[:, 0] = self.initial_state(y[:, 0])
         drive = y[:, :-1] @ self.gamma0.T + np.diff(y, axis=1) @ self.gamma1.T
+        transition, gain = (
+            (lambda v: v * np.diag(self.phi), lambda v: v * np.diag(self.injection_gain))
+            if self._diagonal
+            else (lambda v: v @ self.phi.T, lambda v: v @ self.injection_gain.T)
+        )
         for k in range(y.shape[1] - 1):
-            z[:, k + 1] = z[:, k] @ self.phi.T + drive[:, k]
+            z[:, k + 1] = transition(z[:, k]) + drive[:, k]
             if injection is not None:
-                z[:, k + 1] += injection(k, z[:, k]) @ self.injection_gain.T
+                z[:, k + 1] += gain(injection(k, z[:, k]))
         return z
+
+
+def _is_diagonal(matrix) -> bool:
+    """Whether a square numpy array or torch tensor has only zeros off its diagonal."""
+    off_diagonal = matrix - (
+        np.diag(np.diag(matrix)) if isinstance(matrix, np.ndarray) else matrix.diag().diag()
+    )
+    return not bool((off_diagonal != 0).any())
+
+
+def latent_drift(z, a):
+    """``A z`` for ``z: (..., n_z)`` (arrays or tensors), elementwise when ``A`` is diagonal."""
+    if _is_diagonal(a):
+        return z * (np.diag(a) if isinstance(a, np.ndarray) else a.diagonal())
+    return z @ a.T

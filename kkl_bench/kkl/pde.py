@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import torch
 
+from kkl_bench.kkl.latent import latent_drift
 from kkl_bench.kkl.networks import LayerDeltas, NormalizedMLP
 
 
@@ -35,7 +36,7 @@ def pde_residual(
 ) -> torch.Tensor:
     """``dT/dx(x) v - A T(x) - B h(x)``: ``x, v: (..., n_x)``, ``h_x: (..., n_y)`` -> ``(..., n_z)``."""
     t_x, dt_v = directional_derivative(encoder, x, v)
-    return dt_v - t_x @ a.T - h_x @ b.T
+    return dt_v - latent_drift(t_x, a) - h_x @ b.T
 
 
 def normalized_field_rms(encoder: NormalizedMLP, vector_field: torch.Tensor) -> torch.Tensor:

@@ -72,7 +72,7 @@ class TrajectoryDraws:
     x0: ``(n_x,)`` initial state.
     r: ``(n_numbers,)`` uniform numbers the regime maps to its parameters.
     process_noise: ``(steps - 1, n_x)`` samples ``w_k``.
-    measurement_noise: ``(steps,)`` samples ``v_k``.
+    measurement_noise: ``(steps, n_y)`` samples ``v_k``.
     """
 
     x0: np.ndarray
@@ -89,10 +89,12 @@ def draw_trajectory(
     sigma_w: float,
     sigma_v: float,
     n_numbers: int = N_REGIME_NUMBERS,
+    n_y: int = 1,
 ) -> TrajectoryDraws:
-    """Draw one trajectory's randomness in the protocol's order."""
+    """Draw one trajectory's randomness in the protocol's order (with one output, the
+    measurement noise is the same numbers as protocol v1's ``(steps,)`` draw)."""
     x0 = rng.uniform(x0_low, x0_high, len(x0_low))
     r = rng.random(n_numbers)
     process_noise = sigma_w * rng.standard_normal((steps - 1, len(x0_low)))
-    measurement_noise = sigma_v * rng.standard_normal(steps)
+    measurement_noise = sigma_v * rng.standard_normal((steps, n_y))
     return TrajectoryDraws(x0, r, process_noise, measurement_noise)

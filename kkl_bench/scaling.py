@@ -1,0 +1,268 @@
+"""The scaling study: how each estimator's cost and error grow with the state dimension.
+
+On Lorenz-96 with ``n = 5, 10, 20, 40`` states (the ``more-systems`` track),
+per estimator:
+
+* the fit time and the RMSE, from the track's cells in the results store
+  (means over the four regimes and the training seeds);
+* the online cost, microseconds per trajectory-step of ``estimate`` at a batch
+  of 20 trajectories and of 1, measured here side by side in one run: every
+  fitted estimator of every size is loaded first (from the cache the run
+  filled), then each is timed ``repeats`` times in turn, round-robin, on one
+  thread, keeping the fastest of its repeats;
+* the exponent ``p`` of each cost curve, ``cost ~ n^p``, the least-squares
+  slope of ``log cost`` against ``log n``.
+
+Everything the study reports is in the frame :func:`scaling_frame` returns;
+:func:`render_scaling` and :func:`scaling_figure` present it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from threadpoolctl import threadpool_limits
+from tqdm.auto import tqdm
+
+from kkl_bench import variants
+from kkl_bench.estimator import Estimator
+from kkl_bench.harness import RunSpec, make_fit_context
+from kkl_bench.leaderboard import summary_table
+from kkl_bench.task import Task, make_test_set
+
+TRACK = "more-systems"
+SIZES = (5, 10, 20, 40)
+REGIME = "sinusoid"
+"""The task whose test trajectories the online cost is timed on."""
+BATCHES = (20, 1)
+STEPS = 200
+"""Samples per timed call: the cost per trajectory-step does not depend on the horizon, and
+the filters' Python loops at n = 40 would take minutes over the whole one."""
+COSTS = {
+    "fit_time_s": "fit time (s)",
+    "us_per_step_batch20": "µs / trajectory-step, batch 20",
+    "us_per_step_batch1": "µs / trajectory-step, batch 1",
+}
+
+
+def system_name(n: int) -> str:
+    return f"lorenz96-n{n}"
+
+
+def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.DataFrame:
+    """Per (estimator, n): status, RMSE and fit time, means over the track's regimes.
+
+    ``results``: the store's cells (:func:`~kkl_bench.results.load_results`).
+    Columns: estimator, n, status (``ok``, or the first error of a failed
+    cell), rmse, nrmse, fit_time_s.
+    """
+    wanted = {system_name(n): n for n in sizes}
+    track = results[(results.get("track") == TRACK) & results["system"].isin(wanted)]
+    if track.empty:
+        raise ValueError(
+            f"the results hold no {TRACK} cells of {', '.join(wanted)}; run "
+            f"`kkl-bench run --track {TRACK} --estimator all` first"
+        )
+    rows = []
+    for (estimator, system), cells in summary_table(track).groupby(["estimator", "system"]):
+        ok = cells[cells["status"] == "ok"]
+        failed = track[
+            (track["estimator"] == estimator)
+            & (track["system"] == system)
+            & (track["status"] != "ok")
+        ]
+        rows.append(
+            {
+                "estimator": estimator,
+                "n": wanted[system],
+                "status": "ok" if failed.empty else _first_line(failed["error"].iloc[0]),
+                "rmse": ok["rmse_mean"].mean() if failed.empty else math.nan,
+                "nrmse": ok["nrmse_mean"].mean() if failed.empty else math.nan,
+                "fit_time_s": ok["fit_time_s"].mean() if failed.empty else math.nan,
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def _first_line(error: object) -> str:
+    lines = [line for line in str(error).splitlines() if line.strip()]
+    return lines[-1][:120] if lines else "error"
+
+
+def time_estimators(
+    spec: RunSpec, fitted: dict[tuple[str, int], Estimator], repeats: int = 3
+) -> pd.DataFrame:
+    """Online cost of each fitted ``(estimator, n)``, timed round-robin on one thread.
+
+    Returns columns estimator, n, batch, us_per_step (fastest of ``repeats``).
+    """
+    inputs = {}
+    for _, n in fitted:
+        data = make_test_set(Task(system_name(n), REGIME, 1, TRACK), spec.profile.n_test).data
+        rows = {batch: np.arange(batch) % len(data.y) for batch in BATCHES}
+        inputs[n] = {
+            batch: (data.t[:STEPS], data.y[rows[batch], :STEPS], data.u[rows[batch], :STEPS])
+            for batch in BATCHES
+        }
+    best: dict[tuple[str, int, int], float] = {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            rounds = [(key, batch) for _ in range(repeats) for key in fitted for batch in BATCHES]
+            for (name, n), batch in tqdm(rounds, desc="timing", unit="call"):
+                t, y, u = inputs[n][batch]
+                start = time.perf_counter()
+                fitted[name, n].estimate(t, y.copy(), u.copy())
+                seconds = time.perf_counter() - start
+                key = (name, n, batch)
+                best[key] = min(best.get(key, math.inf), seconds * 1e6 / (batch * len(t)))
+    finally:
+        torch.set_num_threads(threads)
+    return pd.DataFrame(
+        [
+            {"estimator": name, "n": n, "batch": batch, "us_per_step": value}
+            for (name, n, batch), value in best.items()
+        ]
+    )
+
+
+def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> Estimator:
+    """``estimator`` fitted for Lorenz-96 with ``n`` states (loaded from the run's cache)."""
+    system = system_name(n)
+    return variants.build(estimator).fit(make_fit_context(spec, estimator, system, seed))
+
+
+def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
+    """One row per (estimator, n): :func:`cell_summary`'s columns and the online costs."""
+    wide = timings.pivot_table(index=["estimator", "n"], columns="batch", values="us_per_step")
+    wide.columns = [f"us_per_step_batch{batch}" for batch in wide.columns]
+    frame = cells.merge(wide.reset_index(), on=["estimator", "n"], how="left")
+    return frame.sort_values(["estimator", "n"]).reset_index(drop=True)
+
+
+def exponents(frame: pd.DataFrame) -> pd.DataFrame:
+    """Per estimator, the fitted exponent ``p`` of ``cost ~ n^p`` for each cost in
+    :data:`COSTS` (NaN with fewer than two finite, positive points)."""
+    rows = []
+    for estimator, rows_of in frame.groupby("estimator"):
+        row = {"estimator": estimator}
+        for column in COSTS:
+            points = rows_of[np.isfinite(rows_of[column]) & (rows_of[column] > 0)]
+            row[column] = (
+                float(np.polyfit(np.log(points["n"]), np.log(points[column]), 1)[0])
+                if len(points) >= 2
+                else math.nan
+            )
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def crossover(frame: pd.DataFrame, reference: str = "ekf") -> dict[tuple[str, int], int | None]:
+    """Per (learned estimator, batch): the smallest measured ``n`` at which it is cheaper
+    online than ``reference``, or None if it never is."""
+    result = {}
+    for batch in BATCHES:
+        column = f"us_per_step_batch{batch}"
+        ref = frame[frame["estimator"] == reference].set_index("n")[column]
+        for estimator, rows_of in frame[frame["estimator"] != reference].groupby("estimator"):
+            cheaper = [
+                n
+                for n, cost in zip(rows_of["n"], rows_of[column], strict=True)
+                if n in ref.index and cost < ref[n]
+            ]
+            result[estimator, batch] = min(cheaper) if cheaper else None
+    return result
+
+
+def render_scaling(frame: pd.DataFrame, profile: str) -> str:
+    """The study as Markdown: the per-size table, the exponents and the EKF crossovers."""
+    from tabulate import tabulate
+
+    sizes = sorted(set(frame["n"]))
+    table = []
+    for estimator, rows_of in frame.groupby("estimator"):
+        for row in rows_of.itertuples():
+            ok = row.status == "ok"
+            table.append(
+                [
+                    estimator,
+                    row.n,
+                    f"{row.rmse:.3g}" if ok else f"failed: {row.status}",
+                    f"{row.fit_time_s:.3g}" if ok else "-",
+                    _cost(row.us_per_step_batch20),
+                    _cost(row.us_per_step_batch1),
+                ]
+            )
+    fitted = exponents(frame)
+    exponent_table = [
+        [row.estimator, *(_exponent(getattr(row, column)) for column in COSTS)]
+        for row in fitted.itertuples()
+    ]
+    cheaper = crossover(frame)
+    crossings = [
+        [estimator, *(_crossing(cheaper.get((estimator, batch)), sizes) for batch in BATCHES)]
+        for estimator in sorted({name for name, _ in cheaper})
+    ]
+    return "\n\n".join(
+        [
+            f"Lorenz-96 at n = {', '.join(map(str, sizes))} (track `{TRACK}`, profile "
+            f"`{profile}`). RMSE and fit time: means over the four regimes and the training "
+            "seeds. Online cost: the fastest of three timed calls on the first "
+            f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
+            "turn in one run on one thread.",
+            tabulate(
+                table,
+                ["Estimator", "n", "RMSE", "Fit time (s)", "µs/step, batch 20", "µs/step, batch 1"],
+                tablefmt="github",
+                disable_numparse=True,
+            ),
+            "Fitted exponents p of cost ~ n^p (least squares on log-log):",
+            tabulate(
+                exponent_table,
+                ["Estimator", "fit time", "online, batch 20", "online, batch 1"],
+                tablefmt="github",
+                disable_numparse=True,
+            ),
+            "Smallest n at which each estimator is cheaper online than the EKF:",
+            tabulate(crossings, ["Estimator", "batch 20", "batch 1"], tablefmt="github"),
+        ]
+    )
+
+
+def _cost(value: float) -> str:
+    return f"{value:.3g}" if isinstance(value, float) and math.isfinite(value) else "-"
+
+
+def _exponent(value: float) -> str:
+    return f"{value:.2f}" if math.isfinite(value) else "-"
+
+
+def _crossing(n: int | None, sizes: Sequence[int]) -> str:
+    return f"n = {n}" if n is not None else f"never up to n = {max(sizes)}"
+
+
+def write_study(cells: pd.DataFrame, timings: pd.DataFrame, profile: str, out: Path) -> list[Path]:
+    """Write ``scaling.md``, ``scaling.csv`` and ``figures/scaling.{png,svg}`` into ``out``."""
+    from kkl_bench import figures
+
+    frame = scaling_frame(cells, timings)
+    out.mkdir(parents=True, exist_ok=True)
+    markdown = out / "scaling.md"
+    markdown.write_text(
+        "# Scaling study: Lorenz-96 from 5 to 40 states\n\n"
+        "Written by `kkl-bench scaling` (see `docs/protocol.md` section 8).\n\n"
+        f"{render_scaling(frame, profile)}\n\n![scaling](figures/scaling.png)\n",
+        encoding="utf-8",
+    )
+    table = out / "scaling.csv"
+    frame.to_csv(table, index=False, float_format="%.6g")
+    figure = figures.scaling_figure(frame, COSTS, exponents(frame))
+    figures.save(figure, out / "figures" / "scaling")
+    return [markdown, table, out / "figures" / "scaling.png"]

@@ -1,0 +1,85 @@
+"""Lorenz-96 with ``n`` states, forcing ``F = 8``, input into the first state.
+
+``dx_i = (x_{i+1} - x_{i-2}) x_{i-1} - x_i + F (+ u for i = 0)``, indices
+modulo ``n`` (Lorenz, "Predictability: a problem partly solved", 1996). Every
+other state is measured, ``y = (x_0, x_2, x_4, ...)``: the usual sparse
+observation of data assimilation studies, which keeps the system observable
+(each unmeasured ``x_i`` enters the derivative of a measured neighbour). The
+initial box ``[F - 1, F + 1]^n`` surrounds the unstable equilibrium ``x_i = F``,
+as the paper's Lorenz box surrounds the origin; trajectories leave it for the
+chaotic attractor within seconds.
+
+The dimension is part of the name: ``lorenz96-n5``, ``-n10``, ``-n20`` and
+``-n40`` are registered (:func:`lorenz96` makes any other size).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kkl_bench.protocol.system import System
+from kkl_bench.registry import systems
+
+FORCING = 8.0
+SIZES = (5, 10, 20, 40)
+"""The registered dimensions (the scaling study's)."""
+
+
+class Lorenz96(System):
+    """Lorenz-96 of dimension ``len(state_names)``; use :func:`lorenz96` for a sized class."""
+
+    def __init__(self, forcing: float = FORCING) -> None:
+        self.forcing = forcing
+        index = np.arange(self.n_x)
+        self._next, self._before, self._previous = (
+            list((index + shift) % self.n_x) for shift in (1, -2, -1)
+        )
+
+    def params(self):
+        return {"n": self.n_x, "F": self.forcing}
+
+    def f(self, x):
+        advection = (x[..., self._next] - x[..., self._before]) * x[..., self._previous]
+        return advection - x + self.forcing
+
+    def h(self, x):
+        return x[..., self.measured]
+
+    def f_jacobian(self, x):
+        n = self.n_x
+        rows = np.arange(n)
+        jacobian = np.zeros((*x.shape, n))
+        jacobian[..., rows, rows] = -1.0
+        jacobian[..., rows, self._next] += x[..., self._previous]
+        jacobian[..., rows, self._before] -= x[..., self._previous]
+        jacobian[..., rows, self._previous] += x[..., self._next] - x[..., self._before]
+        return jacobian
+
+    def h_jacobian(self, x):
+        jacobian = np.zeros((*x.shape[:-1], self.n_y, self.n_x))
+        jacobian[..., np.arange(self.n_y), self.measured] = 1.0
+        return jacobian
+
+
+def lorenz96(n: int) -> type[Lorenz96]:
+    """The Lorenz-96 system class of dimension ``n`` (at least 4), named ``lorenz96-n<n>``."""
+    if n < 4:
+        raise ValueError(f"Lorenz-96 needs at least 4 states, got n = {n}")
+    g = np.zeros(n)
+    g[0] = 1.0
+    attributes = {
+        "name": f"lorenz96-n{n}",
+        "state_names": tuple(f"x{i}" for i in range(n)),
+        "g": g,
+        "x0_low": np.full(n, FORCING - 1.0),
+        "x0_high": np.full(n, FORCING + 1.0),
+        "measured": list(range(0, n, 2)),
+        "n_y": len(range(0, n, 2)),
+        "__doc__": f"Lorenz-96 with {n} states, every other one measured.",
+    }
+    return type(f"Lorenz96N{n}", (Lorenz96,), attributes)
+
+
+Lorenz96N5, Lorenz96N10, Lorenz96N20, Lorenz96N40 = (
+    systems.register(f"lorenz96-n{n}")(lorenz96(n)) for n in SIZES
+)

@@ -1,0 +1,88 @@
+"""The systems beyond the paper's: outputs, torch evaluation, known behaviour."""
+
+import numpy as np
+import pytest
+import torch
+from kkl_bench.systems.lorenz96 import lorenz96
+
+from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
+from kkl_bench.protocol import DT
+from kkl_bench.protocol.simulate import simulate
+from kkl_bench.registry import systems
+
+NEW_SYSTEMS = [
+    "fitzhugh_nagumo",
+    "chua",
+    "lorenz96-n5",
+    "lorenz96-n10",
+    "lorenz96-n20",
+    "lorenz96-n40",
+]
+
+
+@pytest.mark.parametrize("name", NEW_SYSTEMS)
+def test_torch_and_numpy_evaluate_the_same_model(name):
+    system = systems.get(name)()
+    x = np.random.default_rng(0).uniform(system.x0_low, system.x0_high, (3, system.n_x))
+    u = np.array([0.0, 0.5, -1.0])
+    x_torch = torch.as_tensor(x)
+    np.testing.assert_allclose(
+        system.vector_field(x_torch, torch.as_tensor(u)).numpy(), system.vector_field(x, u)
+    )
+    np.testing.assert_allclose(system.h(x_torch).numpy(), system.h(x))
+    assert system.h(x).shape == (3, system.n_y)
+
+
+@pytest.mark.parametrize("name", NEW_SYSTEMS)
+def test_h_jacobian_matches_finite_differences(name):
+    system = systems.get(name)()
+    x = np.random.default_rng(1).uniform(-2, 2, (4, system.n_x))
+    for j in range(system.n_x):
+        step = np.zeros(system.n_x)
+        step[j] = 1e-6
+        column = (system.h(x + step) - system.h(x - step)) / 2e-6
+        np.testing.assert_allclose(system.h_jacobian(x)[..., j], column, atol=1e-8)
+
+
+def test_lorenz96_measures_every_other_state_and_names_its_size():
+    system = systems.get("lorenz96-n5")()
+    assert (system.name, system.n_x, system.n_y, system.n_z) == ("lorenz96-n5", 5, 3, 33)
+    np.testing.assert_array_equal(system.h(np.arange(5.0)), [0.0, 2.0, 4.0])
+    assert systems.get("lorenz96-n40")().n_z == 20 * 81
+    with pytest.raises(ValueError, match="at least 4 states, got n = 3"):
+        lorenz96(3)
+
+
+def test_lorenz96_rests_at_its_equilibrium_and_is_translation_invariant():
+    system = lorenz96(12)()
+    np.testing.assert_allclose(system.f(np.full(12, 8.0)), 0.0)
+    x = np.random.default_rng(2).normal(size=12)
+    np.testing.assert_allclose(system.f(np.roll(x, 3)), np.roll(system.f(x), 3))
+
+
+def test_fitzhugh_nagumo_spikes_with_the_known_period():
+    """Unforced, it spikes on a limit cycle of period ~39.5 model time units, 7.9 s on the
+    protocol's clock (one second is five model time units)."""
+    system = systems.get("fitzhugh_nagumo")()
+    steps = 2000  # 100 s
+    v = simulate(system, np.array([[0.0, 0.0]]), np.zeros((1, steps)), DT).x[0, :, 0]
+    upward = np.flatnonzero((v[:-1] < 0) & (v[1:] >= 0))[2:]  # past the transient
+    assert np.mean(np.diff(upward)) * DT == pytest.approx(39.5 / 5, rel=0.02)
+
+
+def test_chua_stays_on_the_double_scroll():
+    system = systems.get("chua")()
+    x = simulate(system, np.array([[0.1, 0.0, 0.0]]), np.zeros((1, 2000)), DT).x[0]
+    assert np.abs(x[:, 0]).max() < 3.0
+    assert x[1000:, 0].min() < -1.0 < 1.0 < x[1000:, 0].max()  # visits both scrolls
+
+
+def test_each_output_drives_its_own_latent_modes():
+    rates = spread_eigenvalues(6, 1.0, 10.0)
+    a, b = latent_matrices(rates, n_y=2)
+    np.testing.assert_array_equal(b, [[1, 0], [0, 1]] * 3)
+    y = np.zeros((1, 50, 2))
+    y[..., 1] = 1.0  # only the second output is on
+    z = LatentObserver(a, b, 0.05).run(y)[0, -1]
+    assert np.all(z[0::2] == 0.0)
+    np.testing.assert_allclose(z[1::2], 1.0 / rates[1::2], rtol=0.2)  # near the steady state
