@@ -610,3 +610,21 @@ def test_diagonal_latent_recursion_gives_the_numbers_of_the_matrix_product():
     assert np.array_equal(
         latent_drift(z.numpy(), a + np.eye(9, k=1)), z.numpy() @ (a + np.eye(9, k=1)).T
     )
+
+
+def test_per_component_output_scaling_takes_the_elementwise_path_with_the_same_numbers():
+    torch.manual_seed(0)
+    x, z = torch.randn(200, 3), torch.randn(200, 6) * torch.arange(1.0, 7.0)
+    network = NormalizedMLP(3, 6, 16, 2)
+    network.set_normalization(x, z)  # outputs scaled per component: diagonal matrices
+    with torch.no_grad():
+        elementwise = network.forward_with_tangent(x, x.flip(0))
+        network._diagonal_output = False  # force the matrix products
+        dense = network.forward_with_tangent(x, x.flip(0))
+    for fast, slow in zip(elementwise, dense, strict=True):
+        torch.testing.assert_close(fast, slow, rtol=0, atol=1e-6)
+    whitened = NormalizedMLP(3, 6, 16, 2)
+    whitened.set_normalization(x, z + z[:, :1], whiten_outputs=True)
+    network.load_state_dict(whitened.state_dict())  # now a full colouring: products again
+    torch.testing.assert_close(network(x), whitened(x))
+    assert network._diagonal_output is False

@@ -80,6 +80,11 @@ class NormalizedMLP(nn.Module):
         self.register_buffer("out_mean", torch.zeros(n_out))
         self.register_buffer("out_coloring", torch.eye(n_out))
         self.register_buffer("out_whitening", torch.eye(n_out))
+        self._diagonal_output: bool | None = None  # see _output_scaled
+        self.register_load_state_dict_post_hook(lambda module, _: module._forget_output_form())
+
+    def _forget_output_form(self) -> None:
+        self._diagonal_output = None
 
     def set_normalization(
         self, inputs: torch.Tensor, outputs: torch.Tensor, whiten_outputs: bool = False
@@ -97,6 +102,7 @@ class NormalizedMLP(nn.Module):
         self.out_mean.copy_(mean)
         self.out_whitening.copy_(whitening)
         self.out_coloring.copy_(coloring)
+        self._forget_output_form()
 
     def input_difference(self, v: torch.Tensor) -> torch.Tensor:
         """A difference (or tangent) of inputs ``(..., n_in)`` in normalized units."""
@@ -104,7 +110,16 @@ class NormalizedMLP(nn.Module):
 
     def output_difference(self, d: torch.Tensor) -> torch.Tensor:
         """A difference (or tangent) of outputs ``(..., n_out)`` in normalized units."""
-        return d @ self.out_whitening
+        return self._output_scaled(d, self.out_whitening)
+
+    def _output_scaled(self, d: torch.Tensor, matrix: torch.Tensor) -> torch.Tensor:
+        """``d @ matrix`` for the output whitening or colouring: elementwise when the outputs
+        are scaled per component (the matrices are diagonal), with the same numbers at a
+        fraction of the cost for wide outputs (1620 latent states at Lorenz-96 n = 40)."""
+        if self._diagonal_output is None:
+            off_diagonal = self.out_coloring - self.out_coloring.diagonal().diag()
+            self._diagonal_output = not bool(off_diagonal.any())
+        return d * matrix.diagonal() if self._diagonal_output else d @ matrix
 
     def normalized_output(self, out: torch.Tensor) -> torch.Tensor:
         """Physical outputs ``(..., n_out)`` in the network's normalized coordinates."""
@@ -139,7 +154,7 @@ class NormalizedMLP(nn.Module):
     def forward(self, x: torch.Tensor, deltas: LayerDeltas | None = None) -> torch.Tensor:
         """``x: (..., n_in)`` in physical units -> ``(..., n_out)`` in physical units."""
         n = self.normalized(self.input_difference(x - self.in_mean), deltas)
-        return self.out_mean + n @ self.out_coloring
+        return self.out_mean + self._output_scaled(n, self.out_coloring)
 
     def forward_with_tangent(
         self, x: torch.Tensor, v: torch.Tensor, deltas: LayerDeltas | None = None
@@ -162,7 +177,10 @@ class NormalizedMLP(nn.Module):
                 sigmoid = torch.sigmoid(h)
                 dh = dh * (sigmoid * (1 + h * (1 - sigmoid)))
                 h = nn.functional.silu(h)
-        return self.out_mean + h @ self.out_coloring, dh @ self.out_coloring
+        return (
+            self.out_mean + self._output_scaled(h, self.out_coloring),
+            self._output_scaled(dh, self.out_coloring),
+        )
 
     def parameter_shapes(self) -> list[tuple[tuple[int, int], tuple[int]]]:
         """``[(weight shape, bias shape)]`` per layer, for hypernetwork heads."""
