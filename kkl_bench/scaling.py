@@ -147,17 +147,24 @@ def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
     return frame.sort_values(["estimator", "n"]).reset_index(drop=True)
 
 
+TRAINS = 1.0
+"""s: an estimator whose fit takes less than this at every size does not train (the filters
+build their model in microseconds); its fit time has no exponent."""
+
+
 def exponents(frame: pd.DataFrame) -> pd.DataFrame:
     """Per estimator, the fitted exponent ``p`` of ``cost ~ n^p`` for each cost in
-    :data:`COSTS` (NaN with fewer than two finite, positive points)."""
+    :data:`COSTS` (NaN with fewer than two finite, positive points, and for the fit
+    time of an estimator that does not train, see :data:`TRAINS`)."""
     rows = []
     for estimator, rows_of in frame.groupby("estimator"):
         row = {"estimator": estimator}
         for column in COSTS:
             points = rows_of[np.isfinite(rows_of[column]) & (rows_of[column] > 0)]
+            trains = column != "fit_time_s" or (points[column] >= TRAINS).any()
             row[column] = (
                 float(np.polyfit(np.log(points["n"]), np.log(points[column]), 1)[0])
-                if len(points) >= 2
+                if len(points) >= 2 and trains
                 else math.nan
             )
         rows.append(row)

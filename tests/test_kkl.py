@@ -628,3 +628,18 @@ def test_per_component_output_scaling_takes_the_elementwise_path_with_the_same_n
     network.load_state_dict(whitened.state_dict())  # now a full colouring: products again
     torch.testing.assert_close(network(x), whitened(x))
     assert network._diagonal_output is False
+
+
+def test_wide_inputs_are_whitened_through_the_first_layer_with_the_same_result():
+    torch.manual_seed(1)
+    z = torch.randn(300, 40) @ torch.randn(40, 40)  # correlated: a full whitening
+    x = torch.randn(300, 2)
+    wide = NormalizedMLP(40, 2, 8, 2)  # 40 inputs > 8 hidden units: reassociated
+    wide.set_normalization(z, x)
+    with torch.no_grad():
+        reference = wide.normalized(wide.input_difference(z - wide.in_mean))
+        fast, tangent = wide.forward_with_tangent(z, z.flip(0))
+        _, reference_tangent = torch.func.jvp(wide, (z,), (z.flip(0),))
+    torch.testing.assert_close(wide(z), wide.out_mean + reference @ wide.out_coloring)
+    torch.testing.assert_close(fast, wide(z))
+    torch.testing.assert_close(tangent, reference_tangent)

@@ -79,6 +79,7 @@ def test_exponents_recover_power_laws():
     assert fitted.loc["kkl", "fit_time_s"] == pytest.approx(3.0)
     assert fitted.loc["ekf", "us_per_step_batch20"] == pytest.approx(0.0, abs=1e-12)
     assert fitted.loc["ekf", "us_per_step_batch1"] == pytest.approx(1.0)
+    assert math.isnan(fitted.loc["ekf", "fit_time_s"])  # 1 ms at every size: it does not train
 
 
 def test_crossover_lists_the_sizes_cheaper_than_the_ekf():
@@ -98,4 +99,5 @@ def test_report_states_exponents_crossovers_and_failures():
     text = scaling.render_scaling(study, "standard")
     assert "| ekf         | 40  | failed: MemoryError: 40 GB |" in text
     assert "| kkl         | 3.00       | 2.00               | 0.50              |" in text
+    assert "| ekf         | -          | 0.00               | 1.00              |" in text
     assert "| kkl         | every n    | every n   |" in text

@@ -130,13 +130,29 @@ class NormalizedMLP(nn.Module):
 
         ``x_tilde: (..., n_in)`` without deltas; ``(windows, points, n_in)`` with them.
         """
-        h = x_tilde
+        return self._network(x_tilde, deltas, centered=False)
+
+    def _network(self, h: torch.Tensor, deltas: LayerDeltas | None, centered: bool) -> torch.Tensor:
+        """``N`` on normalized inputs ``h``, or on ``centered`` ones (``x - mu_in``) it whitens."""
         last = len(self.layers) - 1
         for i in range(len(self.layers)):
-            h = self._affine(i, h, deltas)
+            h = self._first_affine(h, deltas) if i == 0 and centered else self._affine(i, h, deltas)
             if i < last:
                 h = nn.functional.silu(h)
         return h
+
+    def _first_affine(
+        self, centered: torch.Tensor, deltas: LayerDeltas | None, bias: bool = True
+    ) -> torch.Tensor:
+        """Layer 0 on the whitened inputs ``centered @ W_in``. With more inputs than hidden
+        units (a decoder from 410 or 1620 latent states) and no perturbations, the product
+        is reassociated as ``centered @ (W_0 W_in)^T`` (``W_in`` is symmetric): ``n_in``
+        times ``hidden`` per sample instead of ``n_in^2``, equal up to float rounding."""
+        layer = self.layers[0]
+        if deltas is None and layer.in_features > layer.out_features:
+            weight = layer.weight @ self.in_whitening
+            return nn.functional.linear(centered, weight, layer.bias if bias else None)
+        return self._affine(0, self.input_difference(centered), deltas, bias)
 
     def _affine(
         self, i: int, h: torch.Tensor, deltas: LayerDeltas | None, bias: bool = True
@@ -153,7 +169,7 @@ class NormalizedMLP(nn.Module):
 
     def forward(self, x: torch.Tensor, deltas: LayerDeltas | None = None) -> torch.Tensor:
         """``x: (..., n_in)`` in physical units -> ``(..., n_out)`` in physical units."""
-        n = self.normalized(self.input_difference(x - self.in_mean), deltas)
+        n = self._network(x - self.in_mean, deltas, centered=True)
         return self.out_mean + self._output_scaled(n, self.out_coloring)
 
     def forward_with_tangent(
@@ -167,12 +183,13 @@ class NormalizedMLP(nn.Module):
         rounding at many times the cost on small batches). Parameter gradients
         flow through both outputs.
         """
-        h = self.input_difference(x - self.in_mean)
-        dh = self.input_difference(v)
+        h, dh = x - self.in_mean, v
         last = len(self.layers) - 1
         for i in range(len(self.layers)):
-            h = self._affine(i, h, deltas)
-            dh = self._affine(i, dh, deltas, bias=False)
+            if i == 0:
+                h, dh = self._first_affine(h, deltas), self._first_affine(dh, deltas, bias=False)
+            else:
+                h, dh = self._affine(i, h, deltas), self._affine(i, dh, deltas, bias=False)
             if i < last:
                 sigmoid = torch.sigmoid(h)
                 dh = dh * (sigmoid * (1 + h * (1 - sigmoid)))
