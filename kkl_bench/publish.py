@@ -45,6 +45,7 @@ from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators
 from kkl_bench.results import kept_estimates
+from kkl_bench.scaling import TRACK as SCALING_TRACK
 from kkl_bench.tracks import find_track
 
 RESULTS_LINK = "results"
@@ -112,9 +113,13 @@ def _settling(name: str) -> bool:
 
 
 def _tracks_markdown(
-    tracks: dict[str, pd.DataFrame], relative: pd.DataFrame, figure_names: list[str]
+    tracks: dict[str, pd.DataFrame],
+    relative: pd.DataFrame,
+    figure_names: list[str],
+    scaling_study: bool = False,
 ) -> str:
-    """The README section of the tracks other than the paper's (empty if there are none)."""
+    """The README section of the tracks other than the paper's (empty if there are none);
+    ``scaling_study``: link the study ``kkl-bench scaling`` wrote beside it."""
     if not tracks:
         return ""
     trajectories = {
@@ -140,11 +145,17 @@ def _tracks_markdown(
             if _settling(name)
             else ""
         )
+        scaling = (
+            "\n\nHow each estimator's fit time, online cost and RMSE grow with Lorenz-96's "
+            "dimension: the [scaling study](scaling.md) (`kkl-bench scaling`)."
+            if scaling_study and name == SCALING_TRACK
+            else ""
+        )
         sections.append(
             f"""### Track `{name}`
 
-{description}Task ids read `{name}/<system>/<task>@v<n>`; `docs/protocol.md` (section 7)
-defines every task.{settling}
+{description}Task ids read `{name}/<system>/<task>@v<n>`; `docs/protocol.md` (sections 7
+and 8) defines every task.{settling}{scaling}
 
 {render(summary, "markdown", settling=_settling(name))}
 ![{name}: RMSE relative to the UKF](figures/relative-rmse-{name}.png)
@@ -179,6 +190,7 @@ def _markdown(
     figure_names: list[str],
     tracks: dict[str, pd.DataFrame],
     relative: pd.DataFrame,
+    scaling_study: bool = False,
 ) -> str:
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
     seeds = sorted(set(results["seed"]))
@@ -241,7 +253,7 @@ below them the estimation-error norm on a log scale.
 
 {cells}
 
-{_tracks_markdown(tracks, relative, figure_names)}## Provenance
+{_tracks_markdown(tracks, relative, figure_names, scaling_study)}## Provenance
 
 | what | value |
 |---|---|
@@ -585,7 +597,9 @@ def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     figure_names = draw_figures(summary, results_dir, profile, out, tracks)
     written = {
-        out / "README.md": _markdown(summary, paper, profile, figure_names, tracks, relative),
+        out / "README.md": _markdown(
+            summary, paper, profile, figure_names, tracks, relative, (out / "scaling.md").exists()
+        ),
         out / f"{profile}.tex": render(summary, "latex"),
         out / f"{profile}.csv": render(
             summary[~summary["estimator"].str.startswith(PAPER_PREFIX)], "csv"

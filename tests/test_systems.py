@@ -9,6 +9,8 @@ from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenva
 from kkl_bench.protocol import DT
 from kkl_bench.protocol.simulate import simulate
 from kkl_bench.registry import systems
+from kkl_bench.task import get_profile
+from kkl_bench.testing import check_estimator
 
 NEW_SYSTEMS = [
     "fitzhugh_nagumo",
@@ -86,3 +88,28 @@ def test_each_output_drives_its_own_latent_modes():
     z = LatentObserver(a, b, 0.05).run(y)[0, -1]
     assert np.all(z[0::2] == 0.0)
     np.testing.assert_allclose(z[1::2], 1.0 / rates[1::2], rtol=0.2)  # near the steady state
+
+
+@pytest.mark.parametrize("estimator", ["ekf", "ukf"])
+@pytest.mark.parametrize("name", NEW_SYSTEMS)
+def test_filters_pass_the_conformance_kit(estimator, name):
+    check_estimator(estimator, name)
+
+
+FEW_STEPS = {
+    **{key: 20 for key in ("encoder_steps", "decoder_steps", "selection_steps", "phase2_steps")},
+    **{key: 20 for key in ("adaptation_steps", "rnn_steps")},
+    "curriculum_epoch_steps": 5,
+    "max_epochs": 2,
+}
+"""Cuts the quick budget to a few optimizer steps: what the kit checks does not need training."""
+
+
+@pytest.mark.parametrize("estimator", ["autonomous_kkl", "gru_observer"])
+def test_learned_estimators_pass_the_conformance_kit_with_several_outputs(estimator):
+    """Lorenz-96 measures three of its five states: the latent design, the training data and
+    every network see several outputs. Phase 1, which every KKL estimator builds on, and the
+    recurrent baseline; each KKL estimator's own phase on several outputs runs in the
+    more-systems track (about a minute each here, too long for every test run)."""
+    budget = {**get_profile("quick").budget_for(estimator), **FEW_STEPS}
+    check_estimator(estimator, "lorenz96-n5", budget)
