@@ -97,6 +97,10 @@ def trajectory_figure(title: str, kept: Mapping[str, KeptEstimate]):
     return figure
 
 
+RATIO_CAP = 100.0
+"""Largest RMSE ratio the heat maps' colour scale distinguishes."""
+
+
 def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
     """Heat map of each estimator's mean RMSE over the UKF's per cell (log colour scale).
 
@@ -123,8 +127,15 @@ def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
     figure, axis = plt.subplots(
         figsize=(2.5 + 0.62 * len(cells), 2.2 + 0.42 * len(names)), constrained_layout=True
     )
+    # Colours saturate at RATIO_CAP (the printed numbers do not): one blown-up cell
+    # (1e31) would otherwise wash every other cell out to the same colour.
     norm = (
-        LogNorm(vmin=max(finite.min(), 0.5), vmax=max(finite.max(), 2.0)) if finite.size else None
+        LogNorm(
+            vmin=min(max(finite.min(), 0.5), RATIO_CAP / 2),
+            vmax=min(max(finite.max(), 2.0), RATIO_CAP),
+        )
+        if finite.size
+        else None
     )
     image = axis.imshow(
         np.where(np.isfinite(ratios), ratios, np.nan), cmap="RdYlGn_r", norm=norm, aspect="auto"
@@ -144,7 +155,9 @@ def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
     axis.set_title(
         f"{title}RMSE relative to the {REFERENCE.upper()} (mean over seeds; 1 = as good)"
     )
-    figure.colorbar(image, ax=axis, label=f"RMSE / RMSE of {REFERENCE}")
+    figure.colorbar(
+        image, ax=axis, label=f"RMSE / RMSE of {REFERENCE} (colour saturates at {RATIO_CAP:g})"
+    )
     return figure
 
 
