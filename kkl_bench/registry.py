@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import difflib
 import importlib.metadata
+import re
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
@@ -83,9 +84,10 @@ class Registry(Generic[T]):
         raise UnknownNameError(self._unknown_message(name))
 
     def names(self) -> list[str]:
-        """Sorted names of every registered plugin, loaded or not (failed ones excluded)."""
+        """Names of every registered plugin, loaded or not (failed ones excluded), sorted with
+        numbers by value (``lorenz96-n5`` before ``lorenz96-n10``)."""
         self._scan()
-        return sorted(set(self._loaded) | set(self._lazy))
+        return sorted(set(self._loaded) | set(self._lazy), key=_natural)
 
     def failures(self) -> dict[str, str]:
         """Entry points that failed to import: name -> reason."""
@@ -126,6 +128,11 @@ class Registry(Generic[T]):
             warnings.warn(f"{self.kind} plugin {name!r} failed to load ({reason})", stacklevel=3)
             raise PluginLoadError(f"{self.kind} {name!r} failed to load: {reason}") from error
         return self.register(name)(obj)
+
+
+def _natural(name: str) -> list[tuple[int, int | str]]:
+    """Sort key: runs of digits compare as numbers, the rest as text."""
+    return [(0, int(part)) if part.isdigit() else (1, part) for part in re.split(r"(\d+)", name)]
 
 
 systems: Registry = Registry("system", "kkl_bench.systems")

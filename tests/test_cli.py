@@ -68,7 +68,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
         ),
         (
             ["run", "--estimator", "ekf", "--system", "duffin"],
-            "unknown system 'duffin'; valid systems: duffing, lorenz, rossler, vdp",
+            "unknown system 'duffin'; valid systems: chua, duffing, fitzhugh_nagumo, lorenz, lorenz96-n5",
         ),
         (
             ["run", "--estimator", "ekf", "--regime", "ramp"],
@@ -81,7 +81,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
         (["check", "nope"], "unknown estimator 'nope'"),
         (
             ["run", "--estimator", "ekf", "--track", "noisy"],
-            "unknown track 'noisy'; valid tracks: paper, far-init, noise, ood-inputs",
+            "unknown track 'noisy'; valid tracks: paper, far-init, more-systems, noise, ood-inputs",
         ),
     ],
 )

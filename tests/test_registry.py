@@ -85,7 +85,9 @@ def test_decorator_registers_and_refuses_silent_replacement():
 def test_unknown_name_lists_valid_names_and_suggests():
     with pytest.raises(
         UnknownNameError,
-        match=r"unknown system 'lorentz'; valid systems: duffing, lorenz, rossler, vdp \(did you mean 'lorenz'\?\)",
+        match=r"unknown system 'lorentz'; valid systems: chua, duffing, fitzhugh_nagumo, lorenz, "
+        r"lorenz96-n5, lorenz96-n10, lorenz96-n20, lorenz96-n40, rossler, vdp "
+        r"\(did you mean 'lorenz'\?\)",
     ):
         systems.get("lorentz")
 
