@@ -16,8 +16,8 @@ COMMITTED = Path(__file__).resolve().parents[1] / "leaderboard" / "results" / "s
 DT = 0.05
 
 
-def test_the_four_built_in_tracks_paper_first():
-    assert list(load_tracks())[:4] == ["paper", "far-init", "noise", "ood-inputs"]
+def test_the_built_in_tracks_paper_first():
+    assert list(load_tracks())[:5] == ["paper", "far-init", "more-systems", "noise", "ood-inputs"]
     assert get_track("paper").task_names() == ["zero", "constant", "sinusoid", "square"]
 
 
@@ -136,7 +136,7 @@ def test_a_valid_track_file_parses():
         ),
         (
             ('["duffing"]', '["pendulum"]'),
-            "field 'systems': unknown system 'pendulum'; valid systems: duffing",
+            "field 'systems': unknown system 'pendulum'; valid systems: chua, duffing",
         ),
         (
             ('family = "sinusoid"', 'family = "chirp"'),
