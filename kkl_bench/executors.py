@@ -29,15 +29,27 @@ def threads_per_worker(jobs: int) -> int:
     return max(1, (os.cpu_count() or 1) // jobs)
 
 
+@contextlib.contextmanager
+def thread_limit(threads: int) -> Iterator[None]:
+    """Limit BLAS/OpenMP and torch to ``threads`` inside the block; torch's own count is
+    restored after it."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with threadpool_limits(limits=threads):
+            yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def limited(function: Callable, threads: int) -> Callable:
     """``function`` run with BLAS/OpenMP and torch limited to ``threads`` (for Dask workers,
     whose environment this package does not set)."""
 
     def call(*args: Any) -> Any:
-        import torch
-
-        torch.set_num_threads(threads)
-        with threadpool_limits(limits=threads):
+        with thread_limit(threads):
             return function(*args)
 
     return call

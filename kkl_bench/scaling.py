@@ -26,18 +26,17 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
-from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from kkl_bench import variants
 from kkl_bench.estimator import Estimator
+from kkl_bench.executors import thread_limit
 from kkl_bench.harness import RunSpec, make_fit_context
 from kkl_bench.leaderboard import summary_table
+from kkl_bench.systems.lorenz96 import SIZES
 from kkl_bench.task import Task, make_test_set
 
 TRACK = "more-systems"
-SIZES = (5, 10, 20, 40)
 REGIME = "sinusoid"
 """The task whose test trajectories the online cost is timed on."""
 BATCHES = (20, 1)
@@ -103,7 +102,7 @@ def time_estimators(
     Returns columns estimator, n, batch, us_per_step (fastest of ``repeats``).
     """
     inputs = {}
-    for _, n in fitted:
+    for n in {n for _, n in fitted}:
         data = make_test_set(Task(system_name(n), REGIME, 1, TRACK), spec.profile.n_test).data
         rows = {batch: np.arange(batch) % len(data.y) for batch in BATCHES}
         inputs[n] = {
@@ -111,20 +110,15 @@ def time_estimators(
             for batch in BATCHES
         }
     best: dict[tuple[str, int, int], float] = {}
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with threadpool_limits(limits=1):
-            rounds = [(key, batch) for _ in range(repeats) for key in fitted for batch in BATCHES]
-            for (name, n), batch in tqdm(rounds, desc="timing", unit="call"):
-                t, y, u = inputs[n][batch]
-                start = time.perf_counter()
-                fitted[name, n].estimate(t, y.copy(), u.copy())
-                seconds = time.perf_counter() - start
-                key = (name, n, batch)
-                best[key] = min(best.get(key, math.inf), seconds * 1e6 / (batch * len(t)))
-    finally:
-        torch.set_num_threads(threads)
+    with thread_limit(1):
+        rounds = [(key, batch) for _ in range(repeats) for key in fitted for batch in BATCHES]
+        for (name, n), batch in tqdm(rounds, desc="timing", unit="call"):
+            t, y, u = inputs[n][batch]
+            start = time.perf_counter()
+            fitted[name, n].estimate(t, y.copy(), u.copy())
+            seconds = time.perf_counter() - start
+            key = (name, n, batch)
+            best[key] = min(best.get(key, math.inf), seconds * 1e6 / (batch * len(t)))
     return pd.DataFrame(
         [
             {"estimator": name, "n": n, "batch": batch, "us_per_step": value}

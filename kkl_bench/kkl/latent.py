@@ -68,7 +68,7 @@ class LatentObserver:
         # With a diagonal A (every built-in design) Phi and the injection gain are
         # diagonal too: the recursion is then elementwise, n_z times cheaper than a
         # matrix product (1620 times at Lorenz-96 n = 40), with the same numbers.
-        self._diagonal = _is_diagonal(a)
+        self._diagonal = is_diagonal(a)
 
     @property
     def n_z(self) -> int:
@@ -90,28 +90,34 @@ class LatentObserver:
         z = np.empty((y.shape[0], y.shape[1], self.n_z))
         z[:, 0] = self.initial_state(y[:, 0])
         drive = y[:, :-1] @ self.gamma0.T + np.diff(y, axis=1) @ self.gamma1.T
-        transition, gain = (
-            (lambda v: v * np.diag(self.phi), lambda v: v * np.diag(self.injection_gain))
-            if self._diagonal
-            else (lambda v: v @ self.phi.T, lambda v: v @ self.injection_gain.T)
-        )
+        if self._diagonal:
+            phi, gain = np.diag(self.phi), np.diag(self.injection_gain)
+
+            def apply(matrix: np.ndarray, v: np.ndarray) -> np.ndarray:
+                return v * matrix
+        else:
+            phi, gain = self.phi, self.injection_gain
+
+            def apply(matrix: np.ndarray, v: np.ndarray) -> np.ndarray:
+                return v @ matrix.T
+
         for k in range(y.shape[1] - 1):
-            z[:, k + 1] = transition(z[:, k]) + drive[:, k]
+            z[:, k + 1] = apply(phi, z[:, k]) + drive[:, k]
             if injection is not None:
-                z[:, k + 1] += gain(injection(k, z[:, k]))
+                z[:, k + 1] += apply(gain, injection(k, z[:, k]))
         return z
 
 
-def _is_diagonal(matrix) -> bool:
-    """Whether a square numpy array or torch tensor has only zeros off its diagonal."""
-    off_diagonal = matrix - (
-        np.diag(np.diag(matrix)) if isinstance(matrix, np.ndarray) else matrix.diag().diag()
-    )
-    return not bool((off_diagonal != 0).any())
+def is_diagonal(matrix) -> bool:
+    """Whether a square numpy array or torch tensor has only zeros off its diagonal (one
+    scan, no copy)."""
+    if isinstance(matrix, np.ndarray):
+        return np.count_nonzero(matrix) == np.count_nonzero(np.diagonal(matrix))
+    return bool(matrix.count_nonzero() == matrix.diagonal().count_nonzero())
 
 
 def latent_drift(z, a):
     """``A z`` for ``z: (..., n_z)`` (arrays or tensors), elementwise when ``A`` is diagonal."""
-    if _is_diagonal(a):
+    if is_diagonal(a):
         return z * (np.diag(a) if isinstance(a, np.ndarray) else a.diagonal())
     return z @ a.T

@@ -24,6 +24,8 @@ from collections.abc import Iterator, Sequence
 import torch
 from torch import nn
 
+from kkl_bench.kkl.latent import is_diagonal
+
 LayerDeltas = Sequence[tuple[torch.Tensor, torch.Tensor]]
 """Per-layer ``(dW: (windows, out, in), db: (windows, out))`` perturbations."""
 
@@ -117,8 +119,7 @@ class NormalizedMLP(nn.Module):
         are scaled per component (the matrices are diagonal), with the same numbers at a
         fraction of the cost for wide outputs (1620 latent states at Lorenz-96 n = 40)."""
         if self._diagonal_output is None:
-            off_diagonal = self.out_coloring - self.out_coloring.diagonal().diag()
-            self._diagonal_output = not bool(off_diagonal.any())
+            self._diagonal_output = is_diagonal(self.out_coloring)
         return d * matrix.diagonal() if self._diagonal_output else d @ matrix
 
     def normalized_output(self, out: torch.Tensor) -> torch.Tensor:
@@ -134,24 +135,39 @@ class NormalizedMLP(nn.Module):
 
     def _network(self, h: torch.Tensor, deltas: LayerDeltas | None, centered: bool) -> torch.Tensor:
         """``N`` on normalized inputs ``h``, or on ``centered`` ones (``x - mu_in``) it whitens."""
+        folded = self._folded_first_weight(deltas) if centered else None
         last = len(self.layers) - 1
         for i in range(len(self.layers)):
-            h = self._first_affine(h, deltas) if i == 0 and centered else self._affine(i, h, deltas)
+            if i == 0 and centered:
+                h = self._first_affine(h, deltas, folded)
+            else:
+                h = self._affine(i, h, deltas)
             if i < last:
                 h = nn.functional.silu(h)
         return h
 
-    def _first_affine(
-        self, centered: torch.Tensor, deltas: LayerDeltas | None, bias: bool = True
-    ) -> torch.Tensor:
-        """Layer 0 on the whitened inputs ``centered @ W_in``. With more inputs than hidden
-        units (a decoder from 410 or 1620 latent states) and no perturbations, the product
-        is reassociated as ``centered @ (W_0 W_in)^T`` (``W_in`` is symmetric): ``n_in``
-        times ``hidden`` per sample instead of ``n_in^2``, equal up to float rounding."""
+    def _folded_first_weight(self, deltas: LayerDeltas | None) -> torch.Tensor | None:
+        """``W_0 W_in`` where whitening through the first layer pays: more inputs than hidden
+        units (a decoder from 410 or 1620 latent states) and no perturbations; else None.
+        ``centered @ (W_0 W_in)^T`` (``W_in`` is symmetric) costs ``n_in`` times ``hidden``
+        per sample instead of ``n_in^2`` and equals layer 0 on whitened inputs up to float
+        rounding."""
         layer = self.layers[0]
         if deltas is None and layer.in_features > layer.out_features:
-            weight = layer.weight @ self.in_whitening
-            return nn.functional.linear(centered, weight, layer.bias if bias else None)
+            return layer.weight @ self.in_whitening
+        return None
+
+    def _first_affine(
+        self,
+        centered: torch.Tensor,
+        deltas: LayerDeltas | None,
+        folded: torch.Tensor | None,
+        bias: bool = True,
+    ) -> torch.Tensor:
+        """Layer 0 on the whitened inputs ``centered @ W_in``, through ``folded`` if given
+        (:meth:`_folded_first_weight`)."""
+        if folded is not None:
+            return nn.functional.linear(centered, folded, self.layers[0].bias if bias else None)
         return self._affine(0, self.input_difference(centered), deltas, bias)
 
     def _affine(
@@ -184,10 +200,12 @@ class NormalizedMLP(nn.Module):
         flow through both outputs.
         """
         h, dh = x - self.in_mean, v
+        folded = self._folded_first_weight(deltas)
         last = len(self.layers) - 1
         for i in range(len(self.layers)):
             if i == 0:
-                h, dh = self._first_affine(h, deltas), self._first_affine(dh, deltas, bias=False)
+                h = self._first_affine(h, deltas, folded)
+                dh = self._first_affine(dh, deltas, folded, bias=False)
             else:
                 h, dh = self._affine(i, h, deltas), self._affine(i, dh, deltas, bias=False)
             if i < last:

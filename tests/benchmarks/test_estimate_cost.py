@@ -14,10 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
-from threadpoolctl import threadpool_limits
 
 from kkl_bench import variants
+from kkl_bench.executors import thread_limit
 from kkl_bench.harness import RunSpec, make_fit_context
 from kkl_bench.registry import estimators
 from kkl_bench.task import Task, get_profile, make_test_set
@@ -45,11 +44,8 @@ BATCHES = {"ekf": (1, 20), "ukf": (1, 20)}
 
 @pytest.fixture(scope="module", autouse=True)
 def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    with threadpool_limits(limits=1):
+    with thread_limit(1):
         yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
