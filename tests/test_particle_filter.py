@@ -1,0 +1,153 @@
+"""The particle filter against known answers: resampling counts, the optimal proposal's
+weights, the Kalman filter on a linear system, and convergence in the particle count."""
+
+import numpy as np
+import pytest
+from kkl_bench.estimators.particle_filter import (
+    PROPOSALS,
+    ParticleFilter,
+    gaussian_log_density,
+    optimal_proposal,
+    systematic_resample,
+)
+
+from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
+from kkl_bench.registry import regimes, systems
+from kkl_bench.testing import Conformance
+from tests.test_kkl import HarmonicOscillator, context_for
+
+
+def test_systematic_resampling_copies_each_particle_floor_or_ceil_of_n_w_times():
+    weights = np.array([[0.5, 0.25, 0.125, 0.125], [0.0, 1.0, 0.0, 0.0], [0.1, 0.2, 0.3, 0.4]])
+    for offset in (0.0, 0.3, 0.999):
+        ancestors = systematic_resample(weights, np.full(3, offset))
+        counts = np.stack([np.bincount(row, minlength=4) for row in ancestors])
+        assert np.all(counts >= np.floor(4 * weights)) and np.all(counts <= np.ceil(4 * weights))
+        assert np.all(np.diff(ancestors, axis=1) >= 0)
+    assert systematic_resample(weights, np.zeros(3))[1].tolist() == [1, 1, 1, 1]
+
+
+def test_optimal_proposal_weights_of_a_linear_output_are_the_predictive_likelihood():
+    """With ``h`` linear the weight ``p(y|s) N(s; m, qI) / q(s)`` does not depend on the
+    sample and equals ``N(y; h(m), q H H^T + r I)``."""
+    system = systems.get("lorenz96-n5")()  # three outputs
+    rng = np.random.default_rng(0)
+    q, r = 0.01**2, 0.02**2
+    mean = rng.uniform(-5, 5, (7, system.n_x))
+    y = system.h(mean) + rng.normal(0, 0.05, (7, system.n_y))
+    w, v = rng.standard_normal((7, system.n_x)), rng.standard_normal((7, system.n_y))
+    sample, log_ratio = optimal_proposal(system, mean, y, q, r, w, v)
+    log_weight = gaussian_log_density(y - system.h(sample), r) - log_ratio
+    # H H^T = I for a selection of states, so S = (q + r) I
+    assert np.allclose(log_weight, gaussian_log_density(y - system.h(mean), q + r), atol=1e-9)
+
+
+def test_optimal_proposal_samples_the_conditional_gaussian():
+    system = HarmonicOscillator()
+    q, r, draws = 0.1**2, 0.05**2, 200_000
+    rng = np.random.default_rng(1)
+    mean = np.broadcast_to(np.array([0.3, -0.2]), (draws, 2))
+    y = np.full((draws, 1), 0.5)
+    sample, _ = optimal_proposal(
+        system, mean, y, q, r, rng.standard_normal((draws, 2)), rng.standard_normal((draws, 1))
+    )
+    # x1 | y: precision 1/q + 1/r; x2 is untouched by y
+    variance = 1 / (1 / q + 1 / r)
+    assert sample[:, 0].mean() == pytest.approx(variance * (0.3 / q + 0.5 / r), abs=2e-4)
+    assert sample[:, 0].var() == pytest.approx(variance, rel=0.02)
+    assert sample[:, 1].mean() == pytest.approx(-0.2, abs=1e-3)
+    assert sample[:, 1].var() == pytest.approx(q, rel=0.02)
+
+
+def kalman_filter(system, y, u, dt, q, r, mean, covariance):
+    """The exact posterior means ``(batch, steps, n_x)`` of a linear-Gaussian model."""
+    transition = rk4_step_jacobian(system, np.zeros(system.n_x), np.zeros(()), dt)
+    output = system.h_jacobian(np.zeros(system.n_x))
+    batch, steps, _ = y.shape
+    means = np.empty((batch, steps, system.n_x))
+    for b in range(batch):
+        m, p = mean.copy(), covariance.copy()
+        for k in range(steps):
+            if k:
+                m = rk4_step(system, m, np.asarray(u[b, k - 1, 0]), dt)
+                p = transition @ p @ transition.T + q * np.eye(system.n_x)
+            gain = p @ output.T / (output @ p @ output.T + r)
+            m = m + gain @ (y[b, k] - output @ m)
+            p = p - gain @ output @ p
+            means[b, k] = m
+    return means
+
+
+@pytest.fixture(scope="module")
+def linear_case(tmp_path_factory):
+    """Harmonic-oscillator trajectories, their fit context and exact Kalman posterior means."""
+    system = HarmonicOscillator()
+    context = context_for(system, {}, tmp_path_factory.mktemp("cache"))
+    data = context.training.simulate(regimes.get("sinusoid")(), 3, stream="pf", n_samples=160)
+    low, high = system.x0_low, system.x0_high
+    exact = kalman_filter(
+        system,
+        data.y,
+        data.u,
+        context.dt,
+        context.sigma_w**2,
+        context.sigma_v**2,
+        (low + high) / 2,
+        np.diag((high - low) ** 2 / 12),
+    )
+    return context, data, exact
+
+
+def late_rms(error):
+    """RMS over the samples after the box prior is forgotten (k >= 80)."""
+    return np.sqrt(np.mean(error[:, 80:] ** 2))
+
+
+def test_particle_filter_reaches_the_kalman_filter_on_a_linear_system(linear_case):
+    """Uniform and Gaussian priors give the same posterior once the data dominate."""
+    context, data, exact = linear_case
+    x_hat = ParticleFilter(n=4000).fit(context).estimate(data.t, data.y, data.u)
+    # the Kalman filter's error (~0.037) is the posterior's spread; the particle
+    # filter differs from it by Monte Carlo error only (~0.0014 at 4000 particles)
+    assert late_rms(x_hat - exact) < 0.1 * late_rms(exact - data.x)
+
+
+def test_optimal_proposal_has_less_monte_carlo_error_than_the_bootstrap(linear_case):
+    context, data, exact = linear_case
+    distance = {
+        proposal: late_rms(
+            ParticleFilter(n=100, proposal=proposal).fit(context).estimate(data.t, data.y, data.u)
+            - exact
+        )
+        for proposal in PROPOSALS
+    }
+    assert distance["optimal"] < 0.75 * distance["bootstrap"]
+
+
+def test_particle_filter_error_falls_as_particles_grow():
+    """Distance to a 40000-particle reference on one cell's trajectories shrinks with n."""
+    check = Conformance("particle_filter", system="duffing")
+    data = check.data
+    steps = slice(0, 120)
+
+    def run(n):
+        estimator = ParticleFilter(n=n).fit(check.context)
+        return estimator.estimate(data.t[steps], data.y[:, steps], data.u[:, steps])
+
+    reference = run(40000)
+    errors = [np.sqrt(np.mean((run(n) - reference) ** 2)) for n in (30, 300, 3000)]
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.3 * errors[0]
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"n": 0}, "n=0 must be a positive integer"),
+        ({"proposal": "prior"}, "proposal='prior'; valid: optimal, bootstrap"),
+        ({"resample_below": 2.0}, "resample_below=2.0 must be in"),
+    ],
+)
+def test_bad_parameters_are_named(params, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        ParticleFilter(**params)
