@@ -17,48 +17,29 @@ its training checkpointed like the KKL models
 :func:`kkl_bench.kkl.optimize.resumable`); the fit report records the steps,
 samples and the RMSE on validation trajectories of a separate training
 stream.
+
+With logged data of a true plant (the ``mismatch`` track), the nominally
+trained network is fine-tuned on four fifths of the logged trajectories
+(``rnn_logged_steps`` Adam steps, the same sweeps) and kept only if its RMSE
+on the held-out fifth improves; the fit report records both RMSEs.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
-import numpy as np
 import torch
 from torch import nn
 
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.kkl.config import from_budget
-from kkl_bench.kkl.gain import simulate_families
-from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.optimize import minimize, resumable
-from kkl_bench.kkl.phase2 import load_or_train
+from kkl_bench.kkl.sequence import RecurrentConfig, fit_sequence_model, inputs
 from kkl_bench.protocol import PROTOCOL_ID
-from kkl_bench.protocol.metrics import rmse
-from kkl_bench.registry import estimators, regimes
+from kkl_bench.registry import estimators
 
 CELLS = {"gru": nn.GRU, "lstm": nn.LSTM}
 KIND = "recurrent-observer"
 VERSION = 2
 """Bump when a change to this module changes what a given configuration trains."""
-
-
-@dataclass(frozen=True)
-class RecurrentConfig:
-    """The training budget (read with :func:`kkl_bench.kkl.config.from_budget`)."""
-
-    rnn_hidden: int = 64
-    rnn_layers: int = 2
-    rnn_trajectories: int = 128
-    """Training trajectories of each kind (unforced, forced)."""
-    rnn_validation: int = 16
-    """Validation trajectories of each kind (a separate training stream)."""
-    rnn_steps: int = 4000
-    rnn_batch: int = 32
-    rnn_window: int = 200
-    """Samples one step backpropagates through."""
-    rnn_lr: float = 3e-3
 
 
 class RecurrentObserver(nn.Module):
@@ -94,79 +75,6 @@ class RecurrentObserver(nn.Module):
         return self.out_mean + out * self.out_scale, state
 
 
-def _inputs(y: np.ndarray, u: np.ndarray) -> torch.Tensor:
-    """``(batch, steps, n_y + 1)`` float32 network inputs from ``y`` and ``u``."""
-    return torch.as_tensor(np.concatenate([y, u], axis=-1), dtype=torch.float32)
-
-
-def _train(
-    network: RecurrentObserver,
-    yu: torch.Tensor,
-    x: torch.Tensor,
-    config: RecurrentConfig,
-    seed: int,
-    label: str,
-) -> list[float]:
-    """Truncated BPTT over ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)``.
-
-    Training runs in sweeps: a sweep draws ``rnn_batch`` trajectories
-    (a function of ``seed`` and the sweep's number only) and walks them from
-    ``t = 0`` in consecutive windows of ``rnn_window`` samples, one Adam step
-    per window, carrying the hidden state (detached) from window to window as
-    at test time. A run resumed in the middle of a sweep rebuilds the carried
-    state without gradients.
-    """
-    target = (x - network.out_mean) / network.out_scale
-    count, steps = yu.shape[:2]
-    window = min(config.rnn_window, steps)
-    per_sweep = steps // window
-    carried = {"sweep": None, "rows": None, "state": None}
-
-    def loss(step):
-        sweep, position = divmod(step, per_sweep)
-        start = position * window
-        if carried["sweep"] != sweep:  # a new sweep, or resumed inside one
-            choice = np.random.default_rng([seed, sweep]).choice(count, config.rnn_batch)
-            carried.update(sweep=sweep, rows=torch.as_tensor(choice), state=None)
-            if start:
-                with torch.no_grad():
-                    carried["state"] = network.normalized(yu[carried["rows"], :start])[1]
-        rows = carried["rows"]
-        out, state = network.normalized(yu[rows, start : start + window], carried["state"])
-        carried["state"] = (
-            tuple(s.detach() for s in state) if isinstance(state, tuple) else state.detach()
-        )
-        return (out - target[rows, start : start + window]).pow(2).sum(-1).mean()
-
-    return minimize(
-        loss,
-        network.parameters(),
-        config.rnn_steps,
-        config.rnn_batch * window,
-        lr=config.rnn_lr,
-        description=label,
-    )
-
-
-def _fit(context: FitContext, network: RecurrentObserver, config, description) -> dict:
-    """Train ``network`` on the training families; the training log with its validation RMSE."""
-    families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
-    x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
-    yu, x = _inputs(y, u), torch.as_tensor(x, dtype=torch.float32)
-    network.set_normalization(yu, x)
-    with resumable(context.cache_dir, description, []):
-        losses = _train(network, yu, x, config, context.seed, f"{context.system.name}: {KIND}")
-    x_val, y_val, u_val = simulate_families(
-        context, families, config.rnn_validation, "rnn/validation"
-    )
-    with torch.no_grad():
-        x_hat, _ = network(_inputs(y_val, u_val))
-    return {
-        "final_loss": float(np.mean(losses[-100:])),
-        "validation_rmse": float(rmse(x_val, x_hat.double().numpy()).mean()),
-    }
-
-
 @estimators.register("gru_observer")
 class GRUObserver(Estimator):
     """A recurrent network from ``(y, u)`` histories to ``x`` (no model structure).
@@ -177,6 +85,7 @@ class GRUObserver(Estimator):
     """
 
     name = "gru_observer"
+    uses_logged_data = True
 
     def __init__(self, cell: str = "gru") -> None:
         self.cell = cell
@@ -197,20 +106,16 @@ class GRUObserver(Estimator):
             "system": system.name,
             "seed": context.seed,
             "cell": self.cell,
-            "config": asdict(config),
         }
-        self.log_ = load_or_train(
-            context, description, network, lambda: _fit(context, network, config, description)
-        )
+        self.report_ = fit_sequence_model(context, network, config, description)
         self.network_ = network
         return super().fit(context)
 
     def estimate(self, t, y, u):
         self.check_fitted()
         with torch.inference_mode():
-            x_hat, _ = self.network_(_inputs(y, u))
+            x_hat, _ = self.network_(inputs(y, u))
         return x_hat.double().numpy()
 
     def fit_report(self):
-        # no Phase 1: the network's own training is its second phase in the cost table
-        return {"training_log": self.log_, "spent": {"phase2": self.log_["spent"]}}
+        return self.report_

@@ -25,6 +25,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 
 from kkl_bench.cache import default_cache_dir
+from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.system import System
 from kkl_bench.training import TrainingData
 
@@ -44,6 +45,10 @@ class FitContext:
     profile: name of the profile being run (``"quick"``, ``"standard"``).
     budget: the profile's training budget for this estimator (free-form keys).
     cache_dir: where the estimator may cache trained models.
+    logged_data: trajectories logged on the true plant (``t, u, x, y``) of a ``mismatch``
+        task, given only to estimators that declare ``uses_logged_data``, else None. The
+        plant differs from ``system`` (the nominal model) and from what ``training``
+        simulates; see ``docs/protocol.md`` section 7.5.
     """
 
     system: System
@@ -56,6 +61,7 @@ class FitContext:
     profile: str = "quick"
     budget: dict[str, Any] = field(default_factory=dict)
     cache_dir: Path = field(default_factory=default_cache_dir)
+    logged_data: Trajectories | None = None
 
     @property
     def x0_low(self) -> np.ndarray:
@@ -83,6 +89,10 @@ class Estimator(ABC):
     uses_seed: ClassVar[bool] = True
     """Whether the fitted estimator depends on the training seed. One that does not
     (a filter given the model) is run with one seed only, however many are asked."""
+    uses_logged_data: ClassVar[bool] = False
+    """Whether ``fit`` can use ``FitContext.logged_data``. On the ``mismatch`` track such an
+    estimator is fitted a second time per true plant, with its logged data, and published
+    as a row of its own (``<name>+logged``)."""
 
     def fit(self, context: FitContext) -> Self:
         """Prepare for ``context.system``; the default only records the context."""

@@ -7,7 +7,11 @@ every requested track's tasks: tracks test generalization, never retraining.
 Each cell is written atomically the moment it
 is scored, with the truth and the estimate of its first test trajectory
 beside it; a cell already on disk is skipped unless ``force`` is set.
-Estimators that do not depend on the seed run with the first seed only. An
+Estimators that do not depend on the seed run with the first seed only. On
+a track whose plant differs from the nominal model (``mismatch``), an
+estimator that declares ``uses_logged_data`` is also fitted once per true
+plant with the data logged on it, and scored on that plant's tasks as the
+row ``<name>+logged``: the one exception to fitting once. An
 estimator that raises, or returns the wrong shape, produces an ``error``
 cell and the run goes on.
 """
@@ -27,8 +31,10 @@ from kkl_bench import variants
 from kkl_bench.cache import default_cache_dir
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import execute
+from kkl_bench.plants import logged_data
 from kkl_bench.protocol import DT, N_SAMPLES, PROTOCOL_ID, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, settling_time, smape
+from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators, systems
 from kkl_bench.results import (
@@ -44,7 +50,7 @@ from kkl_bench.results import (
     write_cell,
 )
 from kkl_bench.task import Profile, Task, TestSet, make_test_set, stream_fingerprint
-from kkl_bench.tracks import TrackError, get_track
+from kkl_bench.tracks import Plant, TrackError, get_track
 from kkl_bench.training import TrainingData
 
 WARM_UP_STEPS = 20
@@ -139,8 +145,11 @@ class RunSummary:
         return not self.failed
 
 
-def make_fit_context(spec: RunSpec, estimator: str, system: str, seed: int) -> FitContext:
-    """The context ``estimator`` (a name or variant) is fitted with for ``system`` and ``seed``."""
+def make_fit_context(
+    spec: RunSpec, estimator: str, system: str, seed: int, logged_data: Trajectories | None = None
+) -> FitContext:
+    """The context ``estimator`` (a name or variant) is fitted with for ``system`` and ``seed``
+    (with ``logged_data``, the trajectories logged on a true plant, if given)."""
     model = systems.get(system)()
     return FitContext(
         system=model,
@@ -153,7 +162,29 @@ def make_fit_context(spec: RunSpec, estimator: str, system: str, seed: int) -> F
         profile=spec.profile.name,
         budget=spec.profile.budget_for(variants.base_name(estimator)),
         cache_dir=Path(spec.cache_dir),
+        logged_data=logged_data,
     )
+
+
+def plant_of(tasks: Iterable[Task]) -> tuple[str, Plant]:
+    """The one ``(track, plant)`` that ``tasks`` share (the tasks of a ``+logged`` fit)."""
+    plants = {(task.track, task.definition().plant) for task in tasks}
+    if len(plants) != 1:
+        raise ValueError(f"tasks of {len(plants)} different plants in one fit with logged data")
+    return plants.pop()
+
+
+def fit_context_for_row(
+    spec: RunSpec, row: str, system: str, tasks: Iterable[Task], seed: int
+) -> FitContext:
+    """The fit context of result row ``row``: an estimator (variant), or ``<name>+logged``,
+    which also receives the data logged on the plant of ``tasks``."""
+    name, with_logged = variants.split_logged(row)
+    if not with_logged:
+        return make_fit_context(spec, name, system, seed)
+    track, plant = plant_of(tasks)
+    logged = logged_data(system, plant, track, SIGMA_W, SIGMA_V)
+    return make_fit_context(spec, name, system, seed, logged)
 
 
 def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
@@ -214,16 +245,16 @@ def _error_text(error: BaseException) -> str:
 def run_system(
     spec: RunSpec, estimator_name: str, system: str, tasks: Iterable[Task], seed: int
 ) -> Iterator[CellResult]:
-    """Fit ``estimator_name`` on ``system`` with ``seed`` once and score it on each task,
-    yielding cells.
+    """Fit ``estimator_name`` (a row name: an estimator, a variant, or ``<name>+logged``) on
+    ``system`` with ``seed`` once and score it on each task, yielding cells.
 
     Each cell is written to ``spec.results_dir`` before it is yielded.
     """
-    estimator = variants.build(estimator_name)
+    estimator = variants.build(variants.split_logged(estimator_name)[0])
     tasks = list(tasks)
     start = time.perf_counter()
     try:
-        estimator.fit(make_fit_context(spec, estimator_name, system, seed))
+        estimator.fit(fit_context_for_row(spec, estimator_name, system, tasks, seed))
     except Exception as error:
         for task in tasks:
             cell = _cell(
@@ -263,7 +294,11 @@ def run_system(
 
 @dataclass(frozen=True)
 class Job:
-    """One unit of work: fit ``estimator`` on ``system`` with ``seed`` once, score it on ``tasks``."""
+    """One unit of work: fit ``estimator`` on ``system`` with ``seed`` once, score it on ``tasks``.
+
+    ``estimator`` is a result row's name: ``<name>+logged`` fits with the logged data of
+    the one plant its tasks share.
+    """
 
     estimator: str
     system: str
@@ -338,16 +373,33 @@ def plan(spec: RunSpec) -> tuple[list[Job], list[CellResult]]:
     for estimator in spec.estimators:
         for seed in spec.seeds_for(estimator):
             for system in spec.systems:
-                todo = []
-                for task in spec.tasks(system):
-                    done = _done(spec, estimator, task, seed)
-                    if done is None:
-                        todo.append(task)
-                    else:
-                        cached.append(done)
-                if todo:
-                    jobs.append(Job(estimator, system, tuple(todo), seed))
+                for row, tasks in rows_and_tasks(spec, estimator, system):
+                    todo = []
+                    for task in tasks:
+                        done = _done(spec, row, task, seed)
+                        if done is None:
+                            todo.append(task)
+                        else:
+                            cached.append(done)
+                    if todo:
+                        jobs.append(Job(row, system, tuple(todo), seed))
     return jobs, cached
+
+
+def rows_and_tasks(spec: RunSpec, estimator: str, system: str) -> list[tuple[str, list[Task]]]:
+    """The result rows ``estimator`` fills on ``system`` and each row's tasks: its own on
+    every selected task, then, if it uses logged data, ``<name>+logged`` on the tasks of
+    each true plant (one fit per plant)."""
+    tasks = spec.tasks(system)
+    rows = [(estimator, tasks)]
+    if estimators.get(variants.base_name(estimator)).uses_logged_data:
+        by_plant: dict[tuple[str, Plant], list[Task]] = {}
+        for task in tasks:
+            plant = task.definition().plant
+            if not plant.nominal:
+                by_plant.setdefault((task.track, plant), []).append(task)
+        rows += [(variants.logged_row(estimator), group) for group in by_plant.values()]
+    return rows
 
 
 def _lost_cells(spec: RunSpec, job: Job, error: BaseException) -> list[CellResult]:

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
+from kkl_bench import variants
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.results import mean_and_std
 from kkl_bench.significance import compare, mark_column
@@ -495,6 +496,70 @@ def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
     )
 
 
+LIMIT = "particle_filter"
+"""The row the other estimators are measured against in :func:`limit_frame`."""
+MODEL_BASED = ("ekf", "ukf", LIMIT)
+"""Estimators given the exact model and nothing learned; every other row is a learned one."""
+LIMIT_COLUMNS = {
+    "system": "System",
+    "regime": "Regime",
+    "limit_rmse": "Particle filter RMSE",
+    "ekf": "EKF / limit",
+    "ukf": "UKF / limit",
+    "best_learned": "Best learned",
+    "best_learned_ratio": "Best learned / limit",
+}
+
+
+def limit_frame(summary: pd.DataFrame) -> pd.DataFrame:
+    """Per cell: the particle filter's RMSE (the posterior mean under the exact model, the
+    least any estimator can expect) and the EKF's, the UKF's and the best learned row's
+    RMSE over it (:data:`LIMIT_COLUMNS`). Empty without particle-filter results."""
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    ok = ours[ours["status"] == "ok"].set_index(["estimator", "system", "regime"])["rmse_mean"]
+    learned = [
+        e for e in dict.fromkeys(ours["estimator"]) if variants.base_name(e) not in MODEL_BASED
+    ]
+    rows = []
+    for system in _in_paper_order(ours["system"], SYSTEM_TITLES):
+        for regime in _in_paper_order(ours["regime"], REGIME_TITLES):
+            limit = ok.get((LIMIT, system, regime), math.nan)
+            if not math.isfinite(limit):
+                continue
+            candidates = {e: ok[(e, system, regime)] for e in learned if (e, system, regime) in ok}
+            best = min(candidates, key=candidates.get) if candidates else ""
+            rows.append(
+                {
+                    "system": system,
+                    "regime": regime,
+                    "limit_rmse": limit,
+                    "ekf": ok.get(("ekf", system, regime), math.nan) / limit,
+                    "ukf": ok.get(("ukf", system, regime), math.nan) / limit,
+                    "best_learned": best,
+                    "best_learned_ratio": candidates[best] / limit if best else math.nan,
+                }
+            )
+    return pd.DataFrame(rows, columns=list(LIMIT_COLUMNS))
+
+
+def limit_table(summary: pd.DataFrame) -> str:
+    """:func:`limit_frame` as Markdown (empty string without particle-filter results)."""
+    frame = limit_frame(summary)
+    if frame.empty:
+        return ""
+    frame = frame.assign(
+        system=frame["system"].map(lambda s: SYSTEM_TITLES.get(s, s)),
+        regime=frame["regime"].map(lambda r: REGIME_TITLES.get(r, r)),
+    )
+    return tabulate(
+        frame,
+        headers=list(LIMIT_COLUMNS.values()),
+        tablefmt="github",
+        floatfmt=".3g",
+        showindex=False,
+    )
+
+
 def _finite_mean(rmse_trajectories: list[list[float]]) -> float:
     """Mean RMSE over the trajectories (of all seeds) that did not diverge."""
     values = [v for seed in rmse_trajectories for v in seed if math.isfinite(v)]
@@ -539,7 +604,9 @@ def track_summary(results: pd.DataFrame) -> pd.DataFrame:
             for cell in cells[cells["status"] == "ok"].itertuples():
                 diverged += cell.n_diverged
                 scored += cell.n_test * cell.n_seeds
-                key = (estimator, cell.system, _reference(track, cell.regime))
+                # a +logged row is compared with its estimator's own paper-track fit
+                nominal = variants.split_logged(estimator)[0]
+                key = (nominal, cell.system, _reference(track, cell.regime))
                 if key not in paper.index or paper.loc[key, "status"] != "ok":
                     continue
                 ratio = _finite_mean(cell.rmse_trajectories) / _finite_mean(

@@ -30,11 +30,14 @@ import pandas as pd
 from kkl_bench import figures, variants
 from kkl_bench.leaderboard import (
     COST_COLUMNS,
+    LIMIT_COLUMNS,
     PAPER_PREFIX,
     REGIME_TITLES,
     SYSTEM_TITLES,
     cost_frame,
     cost_table,
+    limit_frame,
+    limit_table,
     paper_comparison,
     render,
     render_track_summary,
@@ -183,6 +186,22 @@ Diverged trajectories are left out of the ratio and counted beside it.
 {"".join(sections)}"""
 
 
+def _limit_markdown(summary: pd.DataFrame) -> str:
+    table = limit_table(summary)
+    if not table:
+        return ""
+    return f"""
+## Distance from the Bayes limit
+
+`particle_filter` estimates the posterior mean under the exact model (protocol
+section 6.1): no estimator can expect a lower RMSE. Each row divides the
+EKF's, the UKF's and the best learned row's RMSE by it (1.00: at the limit;
+the particle filter's own Monte Carlo error is about 1 %).
+
+{table}
+"""
+
+
 def _markdown(
     summary: pd.DataFrame,
     results: pd.DataFrame,
@@ -225,7 +244,7 @@ Below 1: ours is lower. The paper's numbers come from its own test sets.
 ## Relative to the UKF
 
 ![RMSE relative to the UKF](figures/relative-rmse.png)
-
+{_limit_markdown(summary)}
 ## Cost, training budget and map quality
 
 Means over regimes and seeds. Phase 1 (rate selection, encoder `T`, decoder
@@ -443,6 +462,13 @@ def _tracks_html(
     return "\n".join(parts)
 
 
+def _limit_html(summary: pd.DataFrame) -> str:
+    frame = limit_frame(summary)
+    if frame.empty:
+        return ""
+    return f"<h2>Distance from the Bayes limit</h2>\n{_html_table(frame, LIMIT_COLUMNS, 'limit')}\n"
+
+
 def _page(
     summary: pd.DataFrame,
     results: pd.DataFrame,
@@ -504,7 +530,7 @@ def _page(
 {_html_table(ours, RESULT_COLUMNS, "results", ours["mark"])}
 <h2>The paper's numbers</h2>
 {_html_table(paper, paper_columns, "paper")}
-<h2>Cost, training budget and map quality</h2>
+{_limit_html(summary)}<h2>Cost, training budget and map quality</h2>
 {_html_table(costs, {"estimator": "Estimator", "system": "System", **COST_COLUMNS}, "costs")}
 <h2>Figures</h2>
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>

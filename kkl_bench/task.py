@@ -17,7 +17,6 @@ from the protocol's pinned random streams and carries two fingerprints:
 from __future__ import annotations
 
 import functools
-import hashlib
 import importlib.resources
 import tomllib
 from collections.abc import Mapping
@@ -27,9 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from kkl_bench.plants import true_plant, with_sensor
 from kkl_bench.protocol import DT, PROTOCOL_VERSION
 from kkl_bench.protocol.metrics import state_scale
-from kkl_bench.protocol.simulate import Trajectories, simulate
+from kkl_bench.protocol.simulate import Trajectories, sha256_of_arrays, simulate
 from kkl_bench.protocol.streams import PAPER_TRACK, draw_trajectory, root_seed, trajectory_rng
 from kkl_bench.registry import systems
 from kkl_bench.tracks import TaskDefinition, get_track
@@ -143,13 +143,6 @@ class TestSet:
     fingerprint: str
 
 
-def _sha256(*arrays: np.ndarray) -> str:
-    digest = hashlib.sha256()
-    for array in arrays:
-        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
-    return digest.hexdigest()[:16]
-
-
 def make_test_set(task: Task, n_test: int) -> TestSet:
     """:func:`build_test_set`, cached in memory (its arrays are read-only)."""
     root_seed(task.system, task.regime, "test", task.track)  # refused if sealed
@@ -167,7 +160,7 @@ class _Draws:
     measurement_noise: np.ndarray
 
     def fingerprint(self) -> str:
-        return _sha256(self.x0, self.r, self.process_noise, self.measurement_noise)
+        return sha256_of_arrays(self.x0, self.r, self.process_noise, self.measurement_noise)
 
 
 def _draw(task: Task, n_test: int) -> _Draws:
@@ -215,10 +208,11 @@ def _stream_fingerprint(task: Task, definition: TaskDefinition, n_test: int) -> 
 def build_test_set(task: Task, n_test: int) -> TestSet:
     """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
 
-    Trajectory ``i`` is the same whatever ``n_test`` is (draws: :func:`_draw`).
+    Trajectory ``i`` is the same whatever ``n_test`` is (draws: :func:`_draw`). The
+    plant is the task's (:mod:`kkl_bench.plants`): the nominal model but on ``mismatch``.
     """
     definition = task.definition()
-    system = systems.get(task.system)()
+    system = true_plant(task.system, definition.plant, task.track)
     regime = definition.regime()
     draws = _draw(task, n_test)
     t = DT * np.arange(definition.n_samples)
@@ -226,6 +220,7 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
     u = regime.signal(t, params)
     with np.errstate(over="ignore", invalid="ignore"):
         data = simulate(system, draws.x0, u, DT, draws.process_noise, draws.measurement_noise)
+    data = with_sensor(system, definition.plant, data, draws.measurement_noise)
     escaped = np.flatnonzero(~np.isfinite(data.x).all(axis=(1, 2)))
     if escaped.size:
         raise ValueError(
@@ -241,7 +236,7 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
         regime_params=params,
         state_scale=state_scale(data.x),
         stream_fingerprint=draws.fingerprint(),
-        fingerprint=_sha256(data.t, data.u, data.x, data.y),
+        fingerprint=data.fingerprint(),
     )
 
 

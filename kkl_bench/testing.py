@@ -13,7 +13,9 @@ The checks fit the estimator once on a system (default ``duffing``) with the
 ``quick`` profile's budget, inside :func:`sealed_test_streams` (so reading a
 test set fails), and run it on short forced trajectories from a stream of
 its own. Every fit gets a fresh, empty cache directory, so the determinism
-check really trains twice.
+check really trains twice. An estimator that declares ``uses_logged_data``
+is also fitted on the ``mismatch`` track's logged data, with the true
+plants' parameter errors sealed as well.
 """
 
 from __future__ import annotations
@@ -29,11 +31,13 @@ import numpy as np
 
 from kkl_bench import variants
 from kkl_bench.estimator import Estimator, FitContext
+from kkl_bench.plants import logged_data
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.streams import sealed_test_streams
 from kkl_bench.registry import regimes, systems
 from kkl_bench.task import get_profile
+from kkl_bench.tracks import get_track
 from kkl_bench.training import TrainingData
 
 CHECK_STEPS = 200
@@ -183,6 +187,24 @@ class Conformance:
             and np.array_equal(y, self.data.y)
             and np.array_equal(u, self.data.u)
         ), "estimate modified its input arrays"
+
+    def check_fits_on_logged_data_without_the_true_plant(self) -> None:
+        """An estimator that ``uses_logged_data`` fits on a true plant's logged data (the
+        ``mismatch`` track's 25 % plant; its sensor plant for other systems) without asking for that plant's parameters, which
+        are sealed like the test streams; its estimates are finite."""
+        if not type(self.prototype).uses_logged_data:
+            return
+        track, system = get_track("mismatch"), self.context.system.name
+        # systems off the track have no declared parameter errors: their sensor plant
+        task = "params25-sinusoid" if system in track.systems else "sensor-sinusoid"
+        logged = logged_data(system, track.task(task).plant, track.name, SIGMA_W, SIGMA_V)
+        # the nominal fit's cache: only the fine-tuning on the logged data trains anew
+        context = dataclasses.replace(self.context, logged_data=logged)
+        with sealed_test_streams():
+            fitted = self.prototype.clone().fit(context)
+        assert np.isfinite(self.estimate(fitted)).all(), (
+            "estimate has NaN or inf after a fit with logged data"
+        )
 
     def check_does_not_read_test_sets(self) -> None:
         """``fit`` and ``estimate`` never ask for a test stream (they run sealed; see the module doc)."""

@@ -21,6 +21,9 @@ A track file::
     horizon = 50.0                 # s, a whole number of protocol steps
     x0_box = {scale = 1.0}         # the system's box, half-widths scaled about
                                    # its centre; [x0_box.<system>] low/high replace it
+    plant = {parameters = 0.1, sensor_gain = 1.05, sensor_offset = 0.02}
+                                   # the data come from a plant unlike the nominal
+                                   # model (see Plant); default: the nominal model
 
     [[task]]
     name = "sinusoid-sigma0.1"     # unique within the track
@@ -60,6 +63,7 @@ TASK_FIELDS = (
     "process_noise",
     "horizon",
     "x0_box",
+    "plant",
 )
 """Fields every task (and ``[defaults]``, except name and family) may set; the rest go to the family."""
 _NAME = re.compile(r"[a-z0-9][a-z0-9-]*")
@@ -91,6 +95,35 @@ class X0Box:
 
 
 @dataclass(frozen=True)
+class Plant:
+    """How the plant that makes a task's data differs from the nominal model every
+    estimator is given (protocol section 7.5; :mod:`kkl_bench.plants` builds it).
+
+    Attributes
+    ----------
+    parameters: relative parameter error; each physical parameter of the system is
+        multiplied by ``1 + parameters`` or ``1 - parameters``, the sign drawn once per
+        parameter from the track's pinned plant stream.
+    sensor_gain, sensor_offset: the plant measures ``sensor_gain h(x) + sensor_offset``
+        (plus the noise) where the model says ``h(x)``.
+    """
+
+    parameters: float = 0.0
+    sensor_gain: float = 1.0
+    sensor_offset: float = 0.0
+
+    @property
+    def nominal(self) -> bool:
+        """Whether this is the nominal model itself (every track but ``mismatch``)."""
+        return self == Plant()
+
+    @property
+    def key(self) -> str:
+        """The plant's name in stream keys, e.g. ``plant-p0.25-g1-o0``."""
+        return f"plant-p{self.parameters:g}-g{self.sensor_gain:g}-o{self.sensor_offset:g}"
+
+
+@dataclass(frozen=True)
 class TaskDefinition:
     """One task of a track, for every system of the track.
 
@@ -103,6 +136,7 @@ class TaskDefinition:
     sigma_v, sigma_w: measurement and process noise standard deviations.
     horizon: s; the test trajectories have ``n_samples = horizon / DT + 1`` samples.
     x0_box: where initial states are drawn from.
+    plant: how the plant making the data differs from the nominal model.
     """
 
     name: str
@@ -113,6 +147,7 @@ class TaskDefinition:
     sigma_w: float = SIGMA_W
     horizon: float = (N_SAMPLES - 1) * DT
     x0_box: X0Box = X0Box()
+    plant: Plant = Plant()
 
     @property
     def n_samples(self) -> int:
@@ -219,10 +254,10 @@ def parse_track(text: str, source: str = "<string>") -> Track:
     )
 
 
-def _number(field: str, value: Any, positive: bool = False) -> float:
+def _number(field: str, value: Any, positive: bool = False, signed: bool = False) -> float:
     if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value):
         raise TrackError(f"field {field!r} must be a number, got {value!r}")
-    if value < 0 or (positive and value == 0):
+    if (value < 0 and not signed) or (positive and value == 0):
         raise TrackError(
             f"field {field!r} must be {'positive' if positive else 'non-negative'}, got {value!r}"
         )
@@ -277,7 +312,25 @@ def _task(name: str, entry: Mapping[str, Any], track_systems: tuple[str, ...]) -
         sigma_w=_number("process_noise", entry.get("process_noise", SIGMA_W)),
         horizon=horizon,
         x0_box=_x0_box(entry.get("x0_box", {}), track_systems),
+        plant=_plant(entry.get("plant", {})),
     )
+
+
+def _plant(value: Any) -> Plant:
+    if not isinstance(value, dict):
+        raise TrackError(f"field 'plant' must be a table, got {value!r}")
+    fields = [f.name for f in dataclasses.fields(Plant)]
+    unknown = sorted(set(value) - set(fields))
+    if unknown:
+        raise TrackError(f"unknown field 'plant.{unknown[0]}'; valid: {', '.join(fields)}")
+    plant = Plant(
+        **{key: _number(f"plant.{key}", value[key], signed=key == "sensor_offset") for key in value}
+    )
+    if plant.parameters >= 1.0:
+        raise TrackError(f"field 'plant.parameters' must be below 1, got {plant.parameters!r}")
+    if plant.sensor_gain == 0.0:
+        raise TrackError("field 'plant.sensor_gain' must not be 0")
+    return plant
 
 
 def _x0_box(value: Any, track_systems: tuple[str, ...]) -> X0Box:

@@ -75,10 +75,26 @@ def build(name: str) -> Estimator:
     return estimators.get(base)(**params)
 
 
+LOGGED = "+logged"
+"""Suffix of the row of an estimator's fits that also received a true plant's logged data."""
+
+
+def logged_row(name: str) -> str:
+    """The row name of ``name``'s fits with logged data: ``gru_observer+logged``."""
+    return f"{name}{LOGGED}"
+
+
+def split_logged(row: str) -> tuple[str, bool]:
+    """``"gru_observer+logged"`` -> ``("gru_observer", True)``; other rows -> ``(row, False)``."""
+    if row.endswith(LOGGED):
+        return row[: -len(LOGGED)], True
+    return row, False
+
+
 def base_name(name: str) -> str:
-    """The estimator a (variant) name refers to, read from the name alone (it need not
-    be installed: stored results outlive their plugins)."""
-    match = _NAME.match(name.strip())
+    """The estimator a (variant or ``+logged``) row name refers to, read from the name alone
+    (it need not be installed: stored results outlive their plugins)."""
+    match = _NAME.match(split_logged(name.strip())[0])
     if match is None:
         raise VariantError(
             f"malformed estimator name {name!r}; expected NAME or NAME[key=value,...]"

@@ -1,4 +1,4 @@
-"""Reverse Duffing oscillator: ``dx1 = x2^3``, ``dx2 = -x1 + u``, ``y = x1``."""
+"""Reverse Duffing oscillator: ``dx1 = a x2^3``, ``dx2 = -x1 + u``, ``y = x1`` (``a = 1``)."""
 
 import numpy as np
 
@@ -15,13 +15,20 @@ class ReverseDuffing(MeasureOneState):
     x0_high = np.array([1.0, 1.0])
     measured = 0
 
+    def __init__(self, a: float = 1.0) -> None:
+        self.a = a
+
+    def params(self):
+        return {"a": self.a}
+
     def f(self, x):
         x1, x2 = x[..., 0], x[..., 1]
-        return stack([x2 * x2 * x2, -x1])
+        # a * x2 * x2 * x2 is bit-identical to x2 * x2 * x2 for a = 1
+        return stack([self.a * x2 * x2 * x2, -x1])
 
     def f_jacobian(self, x):
         x2 = x[..., 1]
         jacobian = np.zeros((*x.shape, 2))
-        jacobian[..., 0, 1] = 3.0 * x2 * x2
+        jacobian[..., 0, 1] = 3.0 * self.a * x2 * x2
         jacobian[..., 1, 0] = -1.0
         return jacobian

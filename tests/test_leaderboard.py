@@ -8,6 +8,7 @@ import pytest
 
 from kkl_bench.leaderboard import (
     comparison_table,
+    limit_frame,
     paper_results,
     render,
     render_track_summary,
@@ -196,3 +197,34 @@ def test_settling_columns_follow_each_rmse_column():
     assert header[2:] == ["Duffing Zero", "settle (s)", "Van der Pol Zero", "settle (s)"]
     assert row_of(text, "a").rstrip("| ").endswith("| 2")
     assert "| 0.7 (1/3 never) " in row_of(text, "b")
+
+
+def test_limit_frame_divides_by_the_particle_filter_and_names_the_best_learned_row():
+    rows = [
+        ("particle_filter", 0.10),
+        ("ekf", 0.11),
+        ("ukf", 0.105),
+        ("particle_filter[n=100]", 0.09),  # model-based too, never "learned"
+        ("gru_observer", 0.15),
+        ("kalmannet", 0.12),
+        ("paper:HyperKKL", 0.01),
+    ]
+    summary = pd.DataFrame(
+        [
+            {"estimator": e, "system": "vdp", "regime": "sinusoid", "status": "ok", "rmse_mean": r}
+            for e, r in rows
+        ]
+    )
+    frame = limit_frame(summary)
+    assert frame.to_dict("records") == [
+        {
+            "system": "vdp",
+            "regime": "sinusoid",
+            "limit_rmse": 0.10,
+            "ekf": pytest.approx(1.1),
+            "ukf": pytest.approx(1.05),
+            "best_learned": "kalmannet",
+            "best_learned_ratio": pytest.approx(1.2),
+        }
+    ]
+    assert limit_frame(summary[summary["estimator"] != "particle_filter"]).empty

@@ -3,6 +3,7 @@ weights, the Kalman filter on a linear system, and convergence in the particle c
 
 import numpy as np
 import pytest
+from kkl_bench.estimators.kalman import box_prior
 from kkl_bench.estimators.particle_filter import (
     PROPOSALS,
     ParticleFilter,
@@ -59,20 +60,24 @@ def test_optimal_proposal_samples_the_conditional_gaussian():
     assert sample[:, 1].var() == pytest.approx(q, rel=0.02)
 
 
-def kalman_filter(system, y, u, dt, q, r, mean, covariance):
-    """The exact posterior means ``(batch, steps, n_x)`` of a linear-Gaussian model."""
+def kalman_filter(context, data):
+    """The exact posterior means ``(batch, steps, n_x)`` of ``data`` under the linear system
+    ``context.system`` with the Gaussian moments of its x0 box as prior."""
+    system, dt = context.system, context.dt
+    q, r = context.sigma_w**2, context.sigma_v**2
     transition = rk4_step_jacobian(system, np.zeros(system.n_x), np.zeros(()), dt)
     output = system.h_jacobian(np.zeros(system.n_x))
-    batch, steps, _ = y.shape
+    mean, covariance = box_prior(context)
+    batch, steps, _ = data.y.shape
     means = np.empty((batch, steps, system.n_x))
     for b in range(batch):
         m, p = mean.copy(), covariance.copy()
         for k in range(steps):
             if k:
-                m = rk4_step(system, m, np.asarray(u[b, k - 1, 0]), dt)
+                m = rk4_step(system, m, np.asarray(data.u[b, k - 1, 0]), dt)
                 p = transition @ p @ transition.T + q * np.eye(system.n_x)
             gain = p @ output.T / (output @ p @ output.T + r)
-            m = m + gain @ (y[b, k] - output @ m)
+            m = m + gain @ (data.y[b, k] - output @ m)
             p = p - gain @ output @ p
             means[b, k] = m
     return means
@@ -81,21 +86,9 @@ def kalman_filter(system, y, u, dt, q, r, mean, covariance):
 @pytest.fixture(scope="module")
 def linear_case(tmp_path_factory):
     """Harmonic-oscillator trajectories, their fit context and exact Kalman posterior means."""
-    system = HarmonicOscillator()
-    context = context_for(system, {}, tmp_path_factory.mktemp("cache"))
+    context = context_for(HarmonicOscillator(), {}, tmp_path_factory.mktemp("cache"))
     data = context.training.simulate(regimes.get("sinusoid")(), 3, stream="pf", n_samples=160)
-    low, high = system.x0_low, system.x0_high
-    exact = kalman_filter(
-        system,
-        data.y,
-        data.u,
-        context.dt,
-        context.sigma_w**2,
-        context.sigma_v**2,
-        (low + high) / 2,
-        np.diag((high - low) ** 2 / 12),
-    )
-    return context, data, exact
+    return context, data, kalman_filter(context, data)
 
 
 def late_rms(error):

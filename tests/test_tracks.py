@@ -17,7 +17,14 @@ DT = 0.05
 
 
 def test_the_built_in_tracks_paper_first():
-    assert list(load_tracks())[:5] == ["paper", "far-init", "more-systems", "noise", "ood-inputs"]
+    assert list(load_tracks())[:6] == [
+        "paper",
+        "far-init",
+        "mismatch",
+        "more-systems",
+        "noise",
+        "ood-inputs",
+    ]
     assert get_track("paper").task_names() == ["zero", "constant", "sinusoid", "square"]
 
 

@@ -6,6 +6,7 @@ training-data generator and the model-based filters all call it.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +44,14 @@ def rk4_step_jacobian(system: System, x: np.ndarray, u: np.ndarray, dt: float) -
     return identity + (dt / 6.0) * (dk1 + 2.0 * dk2 + 2.0 * dk3 + dk4)
 
 
+def sha256_of_arrays(*arrays: np.ndarray) -> str:
+    """First 16 hex digits of the SHA-256 of the arrays' float64 bytes, in order."""
+    digest = hashlib.sha256()
+    for array in arrays:
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()[:16]
+
+
 @dataclass(frozen=True)
 class Trajectories:
     """A batch of simulated trajectories on a shared time grid.
@@ -62,6 +71,10 @@ class Trajectories:
 
     def __len__(self) -> int:
         return self.x.shape[0]
+
+    def fingerprint(self) -> str:
+        """:func:`sha256_of_arrays` of ``t, u, x, y``."""
+        return sha256_of_arrays(self.t, self.u, self.x, self.y)
 
 
 def simulate(

@@ -30,7 +30,8 @@ class TestStreamAccessError(RuntimeError):
 
 @contextlib.contextmanager
 def sealed_test_streams() -> Iterator[None]:
-    """Within this block, asking for a test stream raises :class:`TestStreamAccessError`.
+    """Within this block, asking for a test stream (or a true plant's parameter errors)
+    raises :class:`TestStreamAccessError`.
 
     The conformance kit fits and runs estimators inside it, so an estimator
     that peeks at the test sets fails its checks.
@@ -42,6 +43,10 @@ def sealed_test_streams() -> Iterator[None]:
         _test_streams_sealed.reset(token)
 
 
+SEALED_SPLITS = ("test", "plant")
+"""Streams no estimator may ask for: the test trajectories and the true plants of the
+``mismatch`` track (its parameter errors)."""
+
 PAPER_TRACK = "paper"
 """The track of the paper's 16 cells, whose stream keys carry no track name."""
 
@@ -49,10 +54,10 @@ PAPER_TRACK = "paper"
 def root_seed(system: str, regime: str, split: str, track: str = PAPER_TRACK) -> int:
     """``zlib.crc32(b"kkl-bench/v1/<system>/<regime>/<split>")`` for the paper track,
     ``zlib.crc32(b"kkl-bench/v1/<track>/<system>/<regime>/<split>")`` for any other."""
-    if split == "test" and _test_streams_sealed.get():
+    if split in SEALED_SPLITS and _test_streams_sealed.get():
         raise TestStreamAccessError(
-            f"the test stream of {track}/{system}/{regime} was requested where test data are "
-            "off-limits"
+            f"the {split} stream of {track}/{system}/{regime} was requested where test data "
+            "and true plants are off-limits"
         )
     prefix = "" if track == PAPER_TRACK else f"{track}/"
     return zlib.crc32(f"kkl-bench/v{PROTOCOL_VERSION}/{prefix}{system}/{regime}/{split}".encode())

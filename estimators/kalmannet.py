@@ -1,0 +1,175 @@
+"""KalmanNet: the EKF's recursion on the nominal model with a learned Kalman gain.
+
+After Revach, Shlezinger, Ni, Lopez Escoriza, van Sloun and Eldar, "KalmanNet:
+Neural network aided Kalman filtering for partially known dynamics", IEEE
+Trans. Signal Processing 70 (2022), architecture 1. Each step::
+
+    prior     x_{k|k-1} = RK4(x_{k-1|k-1}, u_{k-1})       (the nominal model, no Jacobian)
+    features  F1 = y_k - y_{k-1}                          observation difference
+              F2 = y_k - h(x_{k|k-1})                     innovation
+              F3 = x_{k-1|k-1} - x_{k-2|k-2}              forward-evolution difference
+              F4 = x_{k-1|k-1} - x_{k-1|k-2}              forward-update difference
+    gain      K_k = FC(GRU(FC([F1, F2, F3, F4])))          (n_x, n_y)
+    update    x_{k|k} = x_{k|k-1} + K_k F2
+
+The GRU's state carries what a Kalman filter keeps in its covariances. The
+filter starts at the centre of the x0 box (``x_{0|-1}``) with zero
+differences. It is trained end to end through time (truncated
+backpropagation, :mod:`kkl_bench.kkl.sequence`) on the same training
+families, streams and budget keys as ``gru_observer``; on the ``mismatch``
+track, with logged data, it is fine-tuned on them the same way.
+
+Decisions (``docs/protocol.md`` section 6.2): the paper normalizes each
+feature vector to unit length, which with one output leaves only the sign
+of ``F1`` and ``F2``; here each feature is divided by a fixed scale from the
+training data instead (the standard deviation of one-step changes of ``y``
+for ``F1``, ``F2``, and of ``x`` for ``F3``, ``F4``). Estimates are clipped
+to the training states' mean plus or minus 10 standard deviations, so a gain
+that is still wrong early in training cannot overflow the nominal model.
+It runs on one thread: its per-sample operations are too small for a second
+one to pay (a GRU-cell step of 8 trajectories took 17 ms with two threads on
+a loaded 2-core machine, 0.3 ms with one).
+"""
+
+from __future__ import annotations
+
+import torch
+from kkl_bench.estimators.kalman import box_prior
+from torch import nn
+
+from kkl_bench.estimator import Estimator, FitContext
+from kkl_bench.executors import thread_limit
+from kkl_bench.kkl.config import from_budget
+from kkl_bench.kkl.networks import seeded
+from kkl_bench.kkl.sequence import RecurrentConfig, fit_sequence_model, inputs
+from kkl_bench.protocol import PROTOCOL_ID
+from kkl_bench.protocol.simulate import rk4_step
+from kkl_bench.protocol.system import System
+from kkl_bench.registry import estimators
+
+KIND = "kalmannet"
+VERSION = 1
+"""Bump when a change to this module changes what a given configuration trains."""
+CLIP_STDS = 10.0
+"""Estimates are kept within the training states' mean +/- this many standard deviations."""
+
+
+class KalmanNetFilter(nn.Module):
+    """The filter as a sequence network (the interface of :mod:`kkl_bench.kkl.sequence`).
+
+    ``forward(yu, state)``: ``yu: (batch, steps, n_y + 1)`` measurements and held
+    inputs; ``state`` None (start at ``t = 0``) or the tuple a previous call
+    returned; returns ``x_hat: (batch, steps, n_x)`` and the final state.
+    """
+
+    def __init__(self, system: System, dt: float, prior_mean: torch.Tensor, hidden: int) -> None:
+        super().__init__()
+        self.system, self.dt = system, dt
+        n_x, n_y = system.n_x, system.n_y
+        self.input = nn.Sequential(nn.Linear(2 * n_y + 2 * n_x, hidden), nn.ReLU())
+        self.gru = nn.GRUCell(hidden, hidden)
+        self.output = nn.Sequential(
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, n_x * n_y)
+        )
+        with torch.no_grad():  # start near the open-loop model: a small gain
+            self.output[-1].weight.mul_(0.01)
+            self.output[-1].bias.zero_()
+        self.register_buffer("prior_mean", prior_mean.float())
+        for name, size in (
+            ("out_mean", n_x),
+            ("out_scale", n_x),
+            ("dy_scale", n_y),
+            ("dx_scale", n_x),
+        ):
+            self.register_buffer(name, torch.ones(size))
+
+    def set_normalization(self, yu: torch.Tensor, x: torch.Tensor) -> None:
+        """Scales from training data ``yu: (n, steps, n_y + 1)``, ``x: (n, steps, n_x)``."""
+        n_y = self.system.n_y
+        flat = x.reshape(-1, x.shape[-1])
+        self.out_mean.copy_(flat.mean(0))
+        self.out_scale.copy_(flat.std(0).clamp_min(1e-6))
+        dy = yu[:, 1:, :n_y] - yu[:, :-1, :n_y]
+        self.dy_scale.copy_(dy.reshape(-1, n_y).std(0).clamp_min(1e-6))
+        dx = x[:, 1:] - x[:, :-1]
+        self.dx_scale.copy_(dx.reshape(-1, x.shape[-1]).std(0).clamp_min(1e-6))
+
+    def normalized(self, yu: torch.Tensor, state=None):
+        x_hat, state = self.forward(yu, state)
+        return (x_hat - self.out_mean) / self.out_scale, state
+
+    def forward(self, yu: torch.Tensor, state=None):
+        """Run the filter over ``yu``; ``state`` is ``(posterior, previous posterior,
+        previous prior, previous y, previous u, GRU state)`` after the last sample of a
+        previous call, or None to start at ``t = 0``."""
+        system, n_y = self.system, self.system.n_y
+        batch, steps, _ = yu.shape
+        low = self.out_mean - CLIP_STDS * self.out_scale
+        high = self.out_mean + CLIP_STDS * self.out_scale
+        estimates = []
+        for k in range(steps):
+            y, u = yu[:, k, :n_y], yu[:, k, n_y]
+            if state is None:  # t = 0: the prior is the box centre, every difference zero
+                centre = self.prior_mean.expand(batch, -1)
+                hidden = yu.new_zeros(batch, self.gru.hidden_size)
+                prior, posterior, previous_posterior, previous_y = centre, centre, centre, y
+            else:
+                posterior, previous_posterior, previous_prior, previous_y, previous_u, hidden = (
+                    state
+                )
+                prior = rk4_step(system, posterior, previous_u, self.dt)
+            innovation = y - system.h(prior)
+            features = torch.cat(
+                [
+                    (y - previous_y) / self.dy_scale,
+                    innovation / self.dy_scale,
+                    (posterior - previous_posterior) / self.dx_scale,
+                    (posterior - (prior if state is None else previous_prior)) / self.dx_scale,
+                ],
+                dim=-1,
+            )
+            hidden = self.gru(self.input(features), hidden)
+            gain = self.output(hidden).reshape(batch, system.n_x, n_y)
+            updated = prior + (gain @ innovation[..., None])[..., 0]
+            updated = torch.maximum(torch.minimum(updated, high), low)
+            state = (updated, posterior, prior, y, u, hidden)
+            estimates.append(updated)
+        return torch.stack(estimates, dim=1), state
+
+
+@estimators.register("kalmannet")
+class KalmanNet(Estimator):
+    """KalmanNet on the nominal model (see the module doc); no hyperparameters of its own:
+    sizes and training come from the profile's budget (``rnn_*`` keys, as ``gru_observer``)."""
+
+    name = "kalmannet"
+    uses_logged_data = True
+
+    def fit(self, context: FitContext):
+        config = from_budget(RecurrentConfig, context)
+        system = context.system
+        with seeded(context.seed):
+            network = KalmanNetFilter(
+                system, context.dt, torch.as_tensor(box_prior(context)[0]), config.rnn_hidden
+            )
+        description = {
+            "kind": KIND,
+            "version": VERSION,
+            "protocol": PROTOCOL_ID,
+            "system": system.name,
+            "system_params": system.params(),
+            "seed": context.seed,
+        }
+        with thread_limit(1):
+            self.report_ = fit_sequence_model(context, network, config, description)
+        self.network_ = network
+        return super().fit(context)
+
+    def estimate(self, t, y, u):
+        self.check_fitted()
+        with thread_limit(1), torch.inference_mode():
+            x_hat, _ = self.network_(inputs(y, u))
+        return x_hat.double().numpy()
+
+    def fit_report(self):
+        return self.report_

@@ -1,0 +1,205 @@
+"""Sequence observers trained by truncated backpropagation through time.
+
+What the learned observers that read the measurement history share
+(``gru_observer``, ``kalmannet``): a network ``(y, u) -> x_hat`` that keeps a
+state from ``t = 0``, trained on the training families' trajectories in
+sweeps of consecutive windows, cached and checkpointed like the KKL models,
+and, on the ``mismatch`` track, fine-tuned on a true plant's logged data.
+
+A network here is an ``nn.Module`` with
+
+- ``set_normalization(yu, x)``: fix its input and output scalings from
+  training data ``yu: (n, steps, n_y + 1)``, ``x: (n, steps, n_x)``;
+- ``normalized(yu, state) -> (out, state)``: standardized estimates
+  ``(batch, steps, n_x)`` (``(x_hat - out_mean) / out_scale``) and its final
+  state (a tensor or a tuple of tensors; None starts at ``t = 0``);
+- ``forward(yu, state) -> (x_hat, state)`` in physical units;
+- buffers ``out_mean``, ``out_scale``: ``(n_x,)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from kkl_bench.estimator import FitContext
+from kkl_bench.kkl.config import from_budget
+from kkl_bench.kkl.gain import simulate_families
+from kkl_bench.kkl.inputs import FORCED_TRAINING
+from kkl_bench.kkl.optimize import minimize, resumable
+from kkl_bench.kkl.phase2 import load_or_train
+from kkl_bench.protocol.metrics import rmse
+from kkl_bench.registry import regimes
+
+HELD_OUT_EVERY = 5
+"""Every fifth logged trajectory is held out to validate the fine-tuning."""
+
+
+@dataclass(frozen=True)
+class RecurrentConfig:
+    """The training budget (read with :func:`kkl_bench.kkl.config.from_budget`)."""
+
+    rnn_hidden: int = 64
+    rnn_layers: int = 2
+    rnn_trajectories: int = 128
+    """Training trajectories of each kind (unforced, forced)."""
+    rnn_validation: int = 16
+    """Validation trajectories of each kind (a separate training stream)."""
+    rnn_steps: int = 4000
+    rnn_batch: int = 32
+    rnn_window: int = 200
+    """Samples one step backpropagates through."""
+    rnn_lr: float = 3e-3
+
+
+@dataclass(frozen=True)
+class LoggedTuningConfig:
+    """The fine-tuning budget on a true plant's logged data (``mismatch`` track only)."""
+
+    rnn_logged_steps: int = 1000
+    rnn_logged_lr: float = 1e-3
+
+
+HELD_OUT_EVERY = 5
+"""Every fifth logged trajectory is held out to validate the fine-tuning."""
+
+
+def inputs(y: np.ndarray, u: np.ndarray) -> torch.Tensor:
+    """``(batch, steps, n_y + 1)`` float32 network inputs from ``y`` and ``u``."""
+    return torch.as_tensor(np.concatenate([y, u], axis=-1), dtype=torch.float32)
+
+
+def train_windows(
+    network: nn.Module,
+    yu: torch.Tensor,
+    x: torch.Tensor,
+    config: RecurrentConfig,
+    seed: int,
+    label: str,
+) -> list[float]:
+    """Truncated BPTT over ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)``.
+
+    Training runs in sweeps: a sweep draws ``rnn_batch`` trajectories
+    (a function of ``seed`` and the sweep's number only) and walks them from
+    ``t = 0`` in consecutive windows of ``rnn_window`` samples, one Adam step
+    per window, carrying the hidden state (detached) from window to window as
+    at test time. A run resumed in the middle of a sweep rebuilds the carried
+    state without gradients.
+    """
+    target = (x - network.out_mean) / network.out_scale
+    count, steps = yu.shape[:2]
+    window = min(config.rnn_window, steps)
+    per_sweep = steps // window
+    carried = {"sweep": None, "rows": None, "state": None}
+
+    def loss(step):
+        sweep, position = divmod(step, per_sweep)
+        start = position * window
+        if carried["sweep"] != sweep:  # a new sweep, or resumed inside one
+            choice = np.random.default_rng([seed, sweep]).choice(count, config.rnn_batch)
+            carried.update(sweep=sweep, rows=torch.as_tensor(choice), state=None)
+            if start:
+                with torch.no_grad():
+                    carried["state"] = network.normalized(yu[carried["rows"], :start])[1]
+        rows = carried["rows"]
+        out, state = network.normalized(yu[rows, start : start + window], carried["state"])
+        carried["state"] = (
+            tuple(s.detach() for s in state) if isinstance(state, tuple) else state.detach()
+        )
+        return (out - target[rows, start : start + window]).pow(2).sum(-1).mean()
+
+    return minimize(
+        loss,
+        network.parameters(),
+        config.rnn_steps,
+        config.rnn_batch * window,
+        lr=config.rnn_lr,
+        description=label,
+    )
+
+
+def _train_nominal(context: FitContext, network: nn.Module, config, description) -> dict:
+    """Train ``network`` on the training families; the training log with its validation RMSE."""
+    families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
+    x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
+    yu, x = inputs(y, u), torch.as_tensor(x, dtype=torch.float32)
+    network.set_normalization(yu, x)
+    with resumable(context.cache_dir, description, []):
+        losses = train_windows(
+            network, yu, x, config, context.seed, f"{context.system.name}: {description['kind']}"
+        )
+    x_val, y_val, u_val = simulate_families(
+        context, families, config.rnn_validation, "rnn/validation"
+    )
+    with torch.no_grad():
+        x_hat, _ = network(inputs(y_val, u_val))
+    return {
+        "final_loss": float(np.mean(losses[-100:])),
+        "validation_rmse": float(rmse(x_val, x_hat.double().numpy()).mean()),
+    }
+
+
+def validation_rmse(network: nn.Module, y, u, x) -> float:
+    with torch.no_grad():
+        x_hat, _ = network(inputs(y, u))
+    return float(rmse(x, x_hat.double().numpy()).mean())
+
+
+def _fine_tune(context: FitContext, network: nn.Module, config, description) -> dict:
+    """Fine-tune ``network`` on the logged data; keep it only if the held-out RMSE improves."""
+    logged = context.logged_data
+    held_out = np.arange(len(logged)) % HELD_OUT_EVERY == HELD_OUT_EVERY - 1
+    before = validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
+    nominal = {key: value.clone() for key, value in network.state_dict().items()}
+    network.requires_grad_(True)
+    budget = from_budget(LoggedTuningConfig, context)
+    tuning = replace(config, rnn_steps=budget.rnn_logged_steps, rnn_lr=budget.rnn_logged_lr)
+    with resumable(context.cache_dir, description, []):
+        losses = train_windows(
+            network,
+            inputs(logged.y[~held_out], logged.u[~held_out]),
+            torch.as_tensor(logged.x[~held_out], dtype=torch.float32),
+            tuning,
+            context.seed,
+            f"{context.system.name}: {description['kind']} on logged data",
+        )
+    after = validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
+    if after >= before:
+        network.load_state_dict(nominal)
+    return {
+        "final_loss": float(np.mean(losses[-100:])),
+        "held_out_rmse_nominal": before,
+        "held_out_rmse_fine_tuned": after,
+        "fine_tuned": after < before,
+    }
+
+
+def fit_sequence_model(
+    context: FitContext, network: nn.Module, config: RecurrentConfig, description: dict[str, Any]
+) -> dict[str, Any]:
+    """Train ``network`` (or load it from the cache under ``description``) on the training
+    families, then, if the context has logged data, fine-tune it on them (cached under
+    ``description`` plus their fingerprint). Returns the fit report: the training log
+    (and the fine-tuning's), with the optimizer steps and samples each spent."""
+    description = {**description, "config": asdict(config)}
+    log = load_or_train(
+        context, description, network, lambda: _train_nominal(context, network, config, description)
+    )
+    # no Phase 1: the network's own training is its second phase in the cost table
+    report = {"training_log": log, "spent": {"phase2": log["spent"]}}
+    if context.logged_data is not None:
+        tuning = {
+            **description,
+            "logged_data": context.logged_data.fingerprint(),
+            "tuning": asdict(from_budget(LoggedTuningConfig, context)),
+        }
+        logged = load_or_train(
+            context, tuning, network, lambda: _fine_tune(context, network, config, tuning)
+        )
+        report["logged_data_log"] = logged
+        report["spent"]["logged_data"] = logged["spent"]
+    return report

@@ -1,0 +1,34 @@
+"""KalmanNet against the Kalman filter on a linear system, where the exact gain is known."""
+
+import numpy as np
+import pytest
+from kkl_bench.estimators.kalmannet import KalmanNet
+
+from kkl_bench.registry import regimes
+from tests.test_kkl import HarmonicOscillator, context_for
+from tests.test_particle_filter import kalman_filter
+
+BUDGET = dict(
+    rnn_hidden=16,
+    rnn_trajectories=32,
+    rnn_validation=4,
+    rnn_steps=60,
+    rnn_batch=8,
+    rnn_window=40,
+    rnn_lr=3e-3,
+)
+
+
+@pytest.mark.slow
+def test_kalmannet_approaches_the_kalman_filter_on_a_linear_system(tmp_path):
+    context = context_for(HarmonicOscillator(), BUDGET, tmp_path)
+    data = context.training.simulate(regimes.get("sinusoid")(), 8, stream="kn", n_samples=300)
+    exact = kalman_filter(context, data)
+    x_hat = KalmanNet().fit(context).estimate(data.t, data.y, data.u)
+
+    def rms(estimate):
+        return np.sqrt(np.mean((estimate[:, 50:] - data.x[:, 50:]) ** 2))
+
+    optimal, learned = rms(exact), rms(x_hat)
+    print(f"Kalman filter {optimal:.4f}, KalmanNet {learned:.4f}")
+    assert learned < 1.3 * optimal
