@@ -81,7 +81,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
         (["check", "nope"], "unknown estimator 'nope'"),
         (
             ["run", "--estimator", "ekf", "--track", "noisy"],
-            "unknown track 'noisy'; valid tracks: paper, far-init, more-systems, noise, ood-inputs",
+            "unknown track 'noisy'; valid tracks: paper, far-init, mismatch, more-systems, noise, ood-inputs",
         ),
     ],
 )
