@@ -196,7 +196,7 @@ def _limit_markdown(summary: pd.DataFrame) -> str:
 `particle_filter` estimates the posterior mean under the exact model (protocol
 section 6.1): no estimator can expect a lower RMSE. Each row divides the
 EKF's, the UKF's and the best learned row's RMSE by it (1.00: at the limit;
-the particle filter's own Monte Carlo error is about 1 %).
+a ratio a little below 1 is the particle filter's own Monte Carlo error).
 
 {table}
 """
