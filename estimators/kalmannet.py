@@ -131,7 +131,7 @@ class KalmanNetFilter(nn.Module):
             hidden = self.gru(self.input(features), hidden)
             gain = self.output(hidden).reshape(batch, system.n_x, n_y)
             updated = prior + (gain @ innovation[..., None])[..., 0]
-            updated = torch.maximum(torch.minimum(updated, high), low)
+            updated = torch.clamp(updated, low, high)
             state = (updated, posterior, prior, y, u, hidden)
             estimates.append(updated)
         return torch.stack(estimates, dim=1), state

@@ -183,7 +183,6 @@ class ParticleFilter(Estimator):
             particles, log_weights = self._initial(system, y[:, 0], q, r, normals)
             for k in range(steps):
                 if k > 0:
-                    particles, log_weights = self._resample(particles, log_weights, generators)
                     mean = rk4_step(
                         system, particles, np.broadcast_to(u[:, k - 1], (batch, self.n)), dt
                     )
@@ -200,6 +199,10 @@ class ParticleFilter(Estimator):
                 log_weights = log_weights - logsumexp(log_weights, axis=1, keepdims=True)
                 weights = np.exp(log_weights)
                 x_hat[:, k] = np.einsum("bn,bnx->bx", weights, particles)
+                if k + 1 < steps:
+                    particles, log_weights = self._resample(
+                        particles, log_weights, weights, generators
+                    )
         # a trajectory whose weights all vanished (or overflowed) stays NaN from then on
         return np.where(
             np.isnan(x_hat).any(axis=-1, keepdims=True).cumsum(axis=1) > 0, np.nan, x_hat
@@ -227,9 +230,9 @@ class ParticleFilter(Estimator):
         log_likelihood = gaussian_log_density(y0[:, None, :] - system.h(particles), r)
         return particles, np.where(inside, log_likelihood - log_proposal, -np.inf)
 
-    def _resample(self, particles, log_weights, generators):
-        """Systematic resampling of the trajectories whose effective sample size is low."""
-        weights = np.exp(log_weights)
+    def _resample(self, particles, log_weights, weights, generators):
+        """Systematic resampling of the trajectories whose effective sample size is low
+        (``weights = exp(log_weights)``, normalised, ``(batch, n)``)."""
         effective = 1.0 / np.sum(weights**2, axis=1)
         offsets = np.array([rng.random() for rng in generators])
         low = effective < self.resample_below * self.n

@@ -4,7 +4,7 @@ On most tracks the plant that makes the data is the nominal model every
 estimator is given. A :class:`~kkl_bench.tracks.Plant` declares how it differs
 instead: parameters off by a fixed relative error and a sensor with a gain
 and an offset. This module builds that plant (:func:`true_plant`), simulates
-its measurements (:func:`measure`), and draws the small set of trajectories
+its measurements (:func:`simulate_plant`), and draws the small set of trajectories
 a user would have logged on the real machine (:func:`logged_data`).
 
 The parameter errors are drawn from a stream of their own, sealed like the
@@ -56,19 +56,21 @@ def true_plant(system: str, plant: Plant, track: str) -> System:
     )
 
 
-def measure(system: System, plant: Plant, x: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """What the plant's sensor reads: ``sensor_gain h(x) + sensor_offset + noise``.
-
-    ``x: (batch, steps, n_x)``, ``noise: (batch, steps, n_y)`` -> ``(batch, steps, n_y)``.
-    """
-    return plant.sensor_gain * system.h(x) + plant.sensor_offset + noise
-
-
-def with_sensor(system: System, plant: Plant, data: Trajectories, noise: np.ndarray):
-    """``data`` with its measurements replaced by the plant sensor's (unchanged if nominal)."""
+def simulate_plant(
+    model: System,
+    plant: Plant,
+    x0: np.ndarray,
+    u: np.ndarray,
+    process_noise: np.ndarray,
+    measurement_noise: np.ndarray,
+) -> Trajectories:
+    """:func:`~kkl_bench.protocol.simulate.simulate` on the true plant ``model``, read by the
+    plant's sensor: ``y = sensor_gain h(x) + sensor_offset + v`` (shapes as ``simulate``)."""
+    data = simulate(model, x0, u, DT, process_noise, measurement_noise)
     if plant.sensor_gain == 1.0 and plant.sensor_offset == 0.0:
         return data
-    return Trajectories(data.t, data.u, data.x, measure(system, plant, data.x, noise))
+    y = plant.sensor_gain * model.h(data.x) + plant.sensor_offset + measurement_noise
+    return Trajectories(data.t, data.u, data.x, y)
 
 
 @functools.lru_cache(maxsize=16)
@@ -105,16 +107,16 @@ def logged_data(
             for i in range(per_family)
         ]
         u = regime.signal(t, regime.params_from_uniform(np.stack([d.r for d in draws])))
-        noise = np.stack([d.measurement_noise for d in draws])
-        data = simulate(
-            model,
-            np.stack([d.x0 for d in draws]),
-            u,
-            DT,
-            np.stack([d.process_noise for d in draws]),
-            noise,
+        parts.append(
+            simulate_plant(
+                model,
+                plant,
+                np.stack([d.x0 for d in draws]),
+                u,
+                np.stack([d.process_noise for d in draws]),
+                np.stack([d.measurement_noise for d in draws]),
+            )
         )
-        parts.append(with_sensor(model, plant, data, noise))
     logged = Trajectories(
         t, *(np.concatenate([getattr(p, name) for p in parts]) for name in ("u", "x", "y"))
     )

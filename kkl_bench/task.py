@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from kkl_bench.plants import true_plant, with_sensor
+from kkl_bench.plants import simulate_plant, true_plant
 from kkl_bench.protocol import DT, PROTOCOL_VERSION
 from kkl_bench.protocol.metrics import state_scale
-from kkl_bench.protocol.simulate import Trajectories, sha256_of_arrays, simulate
+from kkl_bench.protocol.simulate import Trajectories, sha256_of_arrays
 from kkl_bench.protocol.streams import PAPER_TRACK, draw_trajectory, root_seed, trajectory_rng
 from kkl_bench.registry import systems
 from kkl_bench.tracks import TaskDefinition, get_track
@@ -219,8 +219,9 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
     params = regime.params_from_uniform(draws.r)
     u = regime.signal(t, params)
     with np.errstate(over="ignore", invalid="ignore"):
-        data = simulate(system, draws.x0, u, DT, draws.process_noise, draws.measurement_noise)
-    data = with_sensor(system, definition.plant, data, draws.measurement_noise)
+        data = simulate_plant(
+            system, definition.plant, draws.x0, u, draws.process_noise, draws.measurement_noise
+        )
     escaped = np.flatnonzero(~np.isfinite(data.x).all(axis=(1, 2)))
     if escaped.size:
         raise ValueError(

@@ -190,8 +190,9 @@ class Conformance:
 
     def check_fits_on_logged_data_without_the_true_plant(self) -> None:
         """An estimator that ``uses_logged_data`` fits on a true plant's logged data (the
-        ``mismatch`` track's 25 % plant; its sensor plant for other systems) without asking for that plant's parameters, which
-        are sealed like the test streams; its estimates are finite."""
+        ``mismatch`` track's 25 % plant; its sensor plant for other systems) without
+        asking for that plant's parameters, which are sealed like the test streams; its
+        estimates are finite."""
         if not type(self.prototype).uses_logged_data:
             return
         track, system = get_track("mismatch"), self.context.system.name

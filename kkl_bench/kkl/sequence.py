@@ -135,28 +135,33 @@ def _train_nominal(context: FitContext, network: nn.Module, config, description)
     x_val, y_val, u_val = simulate_families(
         context, families, config.rnn_validation, "rnn/validation"
     )
-    with torch.no_grad():
-        x_hat, _ = network(inputs(y_val, u_val))
     return {
         "final_loss": float(np.mean(losses[-100:])),
-        "validation_rmse": float(rmse(x_val, x_hat.double().numpy()).mean()),
+        "validation_rmse": _validation_rmse(network, y_val, u_val, x_val),
     }
 
 
-def validation_rmse(network: nn.Module, y, u, x) -> float:
+def _validation_rmse(network: nn.Module, y, u, x) -> float:
+    """Mean RMSE of ``network`` on ``y, u: (n, steps, .)`` against ``x: (n, steps, n_x)``."""
     with torch.no_grad():
         x_hat, _ = network(inputs(y, u))
     return float(rmse(x, x_hat.double().numpy()).mean())
 
 
-def _fine_tune(context: FitContext, network: nn.Module, config, description) -> dict:
-    """Fine-tune ``network`` on the logged data; keep it only if the held-out RMSE improves."""
+def _fine_tune(
+    context: FitContext,
+    network: nn.Module,
+    config: RecurrentConfig,
+    budget: LoggedTuningConfig,
+    description: dict[str, Any],
+) -> dict:
+    """Fine-tune ``network`` on the logged data with ``budget``'s steps and learning rate;
+    keep it only if the held-out RMSE improves."""
     logged = context.logged_data
     held_out = np.arange(len(logged)) % HELD_OUT_EVERY == HELD_OUT_EVERY - 1
-    before = validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
+    before = _validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
     nominal = {key: value.clone() for key, value in network.state_dict().items()}
     network.requires_grad_(True)
-    budget = from_budget(LoggedTuningConfig, context)
     tuning = replace(config, rnn_steps=budget.rnn_logged_steps, rnn_lr=budget.rnn_logged_lr)
     with resumable(context.cache_dir, description, []):
         losses = train_windows(
@@ -167,7 +172,7 @@ def _fine_tune(context: FitContext, network: nn.Module, config, description) -> 
             context.seed,
             f"{context.system.name}: {description['kind']} on logged data",
         )
-    after = validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
+    after = _validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
     if after >= before:
         network.load_state_dict(nominal)
     return {
@@ -192,13 +197,14 @@ def fit_sequence_model(
     # no Phase 1: the network's own training is its second phase in the cost table
     report = {"training_log": log, "spent": {"phase2": log["spent"]}}
     if context.logged_data is not None:
+        budget = from_budget(LoggedTuningConfig, context)
         tuning = {
             **description,
             "logged_data": context.logged_data.fingerprint(),
-            "tuning": asdict(from_budget(LoggedTuningConfig, context)),
+            "tuning": asdict(budget),
         }
         logged = load_or_train(
-            context, tuning, network, lambda: _fine_tune(context, network, config, tuning)
+            context, tuning, network, lambda: _fine_tune(context, network, config, budget, tuning)
         )
         report["logged_data_log"] = logged
         report["spent"]["logged_data"] = logged["spent"]
