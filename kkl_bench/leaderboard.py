@@ -600,12 +600,12 @@ def track_summary(results: pd.DataFrame) -> pd.DataFrame:
         if track == PAPER_TRACK:
             continue
         for estimator, cells in summary.groupby("estimator", sort=False):
+            # a +logged row is compared with its estimator's own paper-track fit
+            nominal = variants.split_logged(estimator)[0]
             ratios, diverged, scored = [], 0, 0
             for cell in cells[cells["status"] == "ok"].itertuples():
                 diverged += cell.n_diverged
                 scored += cell.n_test * cell.n_seeds
-                # a +logged row is compared with its estimator's own paper-track fit
-                nominal = variants.split_logged(estimator)[0]
                 key = (nominal, cell.system, _reference(track, cell.regime))
                 if key not in paper.index or paper.loc[key, "status"] != "ok":
                     continue
