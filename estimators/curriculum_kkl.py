@@ -83,16 +83,15 @@ class CurriculumKKL(KKLEstimator):
             context,
             description,
             model.decoder,
-            lambda: self._train(context, model, data_config, config),
+            lambda generator: self._train(context, model, data_config, config, generator),
         )
         self.model_ = model
         return super().fit(context)
 
     @staticmethod
-    def _train(context, model, data_config, config) -> dict:
+    def _train(context, model, data_config, config, generator) -> dict:
         decoder = model.decoder
         decoder.requires_grad_(True)
-        generator = torch.Generator().manual_seed(context.seed)
         log = {}
         for index, (level, family) in enumerate(LEVELS):
             data = observer_data(

@@ -92,7 +92,7 @@ class DynamicHyperKKL(KKLEstimator):
         )
         return super().fit(context)
 
-    def _train(self, context, model, config, hyper) -> dict:
+    def _train(self, context, model, config, hyper, generator) -> dict:
         system = context.system
         samples = ForcedSamples.simulate(context, model, config)
         x, z_observed, u = samples.tensor("x"), samples.tensor("z"), samples.tensor("u")
@@ -103,7 +103,6 @@ class DynamicHyperKKL(KKLEstimator):
         )
         g = torch.as_tensor(system.g, dtype=torch.float32)
         field_scale = normalized_field_rms(encoder, system.f(pool))
-        generator = torch.Generator().manual_seed(context.seed)
         n_windows = max(1, config.phase2_batch // config.collocation_points)
 
         def loss(_):

@@ -78,9 +78,14 @@ def exact_injection(model: AutonomousModel, g: np.ndarray, u: np.ndarray, gain: 
     return injection
 
 
-def adapt(context: FitContext, model: AutonomousModel, config: AdaptationConfig) -> dict:
+def adapt(
+    context: FitContext,
+    model: AutonomousModel,
+    config: AdaptationConfig,
+    generator: torch.Generator,
+) -> dict:
     """Choose the injection gain, then fine-tune ``model.decoder`` in place on the
-    injected observer's own latent states.
+    injected observer's own latent states (batches drawn from ``generator``).
 
     Each round runs the observer (with the current decoder in the injection)
     on ``adaptation_trajectories`` unforced and as many forced training
@@ -106,7 +111,6 @@ def adapt(context: FitContext, model: AutonomousModel, config: AdaptationConfig)
     )
     start = steady_state_start(x.shape[1])
     states = torch.as_tensor(x[:, start:].reshape(-1, system.n_x), dtype=torch.float32)
-    generator = torch.Generator().manual_seed(context.seed)
     model.decoder.requires_grad_(True)
     for round_ in range(config.adaptation_rounds):
         z = model.observer.run(y, exact_injection(model, system.g, u, gain))
@@ -149,7 +153,10 @@ class InjectionKKL(KKLEstimator):
             config = from_budget(AdaptationConfig, context)
             description = phase2_description(model, "kkl-injection", config, self.get_params())
             self.log_ = load_or_train(
-                context, description, model.decoder, lambda: adapt(context, model, config)
+                context,
+                description,
+                model.decoder,
+                lambda generator: adapt(context, model, config, generator),
             )
             self.gain_ = self.log_["injection_gain"]
         self.model_ = model

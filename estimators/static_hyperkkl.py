@@ -98,12 +98,11 @@ class StaticHyperKKL(KKLEstimator):
         return super().fit(context)
 
     @staticmethod
-    def _train(context, model, config, injection) -> dict:
+    def _train(context, model, config, injection, generator) -> dict:
         samples = ForcedSamples.simulate(context, model, config)
         x = samples.tensor("x")
         encoder = model.encoder
         g = torch.as_tensor(context.system.g, dtype=torch.float32)
-        generator = torch.Generator().manual_seed(context.seed)
 
         def loss(_):
             trajectory, step = samples.draw(config.phase2_batch, generator)

@@ -1,6 +1,7 @@
 """The KKL toolkit and plugins against known answers."""
 
 import dataclasses
+import shutil
 
 import numpy as np
 import pytest
@@ -383,6 +384,66 @@ def fitted_family(tmp_path_factory):
     family["pure_injection_kkl"] = estimators.get("injection_kkl")(adapt=False).fit(context)
     family["guarded_static_hyperkkl"] = estimators.get("static_hyperkkl")(guard=True).fit(context)
     return family
+
+
+class Interrupted(Exception):
+    """Stands for a kill in the middle of a training."""
+
+
+@pytest.fixture(scope="module")
+def duffing_phase1(tmp_path_factory):
+    """A cache holding the TINY Phase-1 model of duffing."""
+    cache = tmp_path_factory.mktemp("phase1")
+    autonomous.fit_phase1(context_for(systems.get("duffing")(), TINY, cache), pde_weight=1.0)
+    return cache
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name, interrupt_after",
+    [
+        ("static_hyperkkl", 25),
+        ("dynamic_hyperkkl", 25),
+        ("curriculum_kkl", 12),
+        ("injection_kkl", 25),
+    ],
+)
+def test_an_interrupted_phase2_training_resumes_from_its_checkpoint_with_the_same_result(
+    tmp_path, monkeypatch, duffing_phase1, name, interrupt_after
+):
+    monkeypatch.setattr(optimize, "CHECKPOINT_EVERY", 10)
+    adam_step = torch.optim.Adam.step
+    steps = {"taken": 0, "limit": None}
+
+    def counted_step(self, *args, **kwargs):
+        if steps["taken"] == steps["limit"]:
+            raise Interrupted
+        steps["taken"] += 1
+        return adam_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", counted_step)
+    system = systems.get("duffing")()
+    data = duffing_data("square")
+    reference_cache, cache = tmp_path / "reference", tmp_path / "interrupted"
+    for target in (reference_cache, cache):  # the same Phase 1 for both
+        shutil.copytree(duffing_phase1, target)
+    steps["taken"] = 0
+    reference = estimators.get(name)().fit(context_for(system, TINY, reference_cache))
+    total = steps["taken"]
+    assert total > interrupt_after
+
+    steps.update(taken=0, limit=interrupt_after)
+    with pytest.raises(Interrupted):
+        estimators.get(name)().fit(context_for(system, TINY, cache))
+    assert list((cache / optimize.RESUME_KIND).glob("*.pt"))  # its checkpoints survived
+    steps.update(taken=0, limit=None)
+    resumed = estimators.get(name)().fit(context_for(system, TINY, cache))
+    assert steps["taken"] < total  # it did not start again from nothing
+    np.testing.assert_array_equal(
+        resumed.estimate(data.t, data.y, data.u), reference.estimate(data.t, data.y, data.u)
+    )
+    assert resumed.fit_report()["spent"] == reference.fit_report()["spent"]
+    assert not list((cache / optimize.RESUME_KIND).glob("*.pt"))  # removed once saved
 
 
 def duffing_data(regime, n_samples=300):

@@ -313,19 +313,17 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
         stored = cache.load("kkl-phase1", description)
         if stored is None:
             generator = torch.Generator().manual_seed(context.seed)
-            with (
-                counting() as spending,
-                resumable(context.cache_dir, description, [generator]),
-            ):
-                rates, selection = _train_phase1(context, config, encoder, decoder, generator)
-            stored = {
-                "encoder": encoder.state_dict(),
-                "decoder": decoder.state_dict(),
-                "rates": torch.as_tensor(rates),
-                "selection": selection,
-                "spent": spending.as_dict(),
-            }
-            cache.save("kkl-phase1", description, stored)
+            with resumable(context.cache_dir, description, [generator]):
+                with counting() as spending:
+                    rates, selection = _train_phase1(context, config, encoder, decoder, generator)
+                stored = {
+                    "encoder": encoder.state_dict(),
+                    "decoder": decoder.state_dict(),
+                    "rates": torch.as_tensor(rates),
+                    "selection": selection,
+                    "spent": spending.as_dict(),
+                }
+                cache.save("kkl-phase1", description, stored)  # before the checkpoints go
     encoder.load_state_dict(stored["encoder"])
     decoder.load_state_dict(stored["decoder"])
     rates = stored["rates"].numpy()

@@ -23,7 +23,7 @@ from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import ObserverData, observer_data
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.optimize import counting
+from kkl_bench.kkl.optimize import counting, resumable
 from kkl_bench.kkl.windows import sliding_windows
 from kkl_bench.protocol.metrics import steady_state_start
 
@@ -91,12 +91,15 @@ def fit_phase2(
     params: dict[str, Any],
     pde_weight: float,
     build: Callable[[AutonomousModel, Phase2Config], nn.Module],
-    train: Callable[[FitContext, AutonomousModel, Phase2Config, nn.Module], dict[str, Any]],
+    train: Callable[
+        [FitContext, AutonomousModel, Phase2Config, nn.Module, torch.Generator], dict[str, Any]
+    ],
 ) -> tuple[AutonomousModel, Phase2Config, nn.Module, dict[str, Any]]:
     """Phase 1 (shared, cached), then a Phase-2 module built and trained on it (cached).
 
     ``build(model, config)`` makes the module (under the run's seed);
-    ``train(context, model, config, module)`` trains it and returns a log.
+    ``train(context, model, config, module, generator)`` trains it, drawing from
+    ``generator`` only (see :func:`load_or_train`), and returns a log.
     Returns the Phase-1 model, the Phase-2 config, the module and the log.
     """
     model = fit_phase1(context, pde_weight)
@@ -104,28 +107,40 @@ def fit_phase2(
     with seeded(context.seed):
         module = build(model, config)
     description = phase2_description(model, kind, config, params)
-    log = load_or_train(context, description, module, lambda: train(context, model, config, module))
+    log = load_or_train(
+        context,
+        description,
+        module,
+        lambda generator: train(context, model, config, module, generator),
+    )
     return model, config, module, log
 
 
 def load_or_train(
-    context: FitContext, description: dict[str, Any], modules: nn.Module, train
+    context: FitContext,
+    description: dict[str, Any],
+    modules: nn.Module,
+    train: Callable[[torch.Generator], dict[str, Any]],
 ) -> dict[str, Any]:
-    """Load ``modules``' state from the cache, or call ``train()`` and store it.
+    """Load ``modules``' state from the cache, or call ``train(generator)`` and store it.
 
-    ``train()`` returns a dict of extra facts to store with the state (e.g. a
-    training log); it is returned either way, with ``"spent"``: the optimizer
-    steps and samples ``train()`` took.
+    ``generator`` is seeded with the run's seed and is the only random generator
+    ``train`` may draw from; the training is :func:`~kkl_bench.kkl.optimize.resumable`,
+    so a killed run continues from its last checkpoint. ``train`` returns a dict of
+    extra facts to store with the state (e.g. a training log); it is returned either
+    way, with ``"spent"``: the optimizer steps and samples ``train`` took.
     """
     cache = CheckpointCache(context.cache_dir)
     kind = description["kind"]
     with cache.claim(kind, description):
         stored = cache.load(kind, description)
         if stored is None:
-            with counting() as spent:
-                log = train()
-            stored = {"state": modules.state_dict(), "log": {**log, "spent": spent.as_dict()}}
-            cache.save(kind, description, stored)
+            generator = torch.Generator().manual_seed(context.seed)
+            with resumable(context.cache_dir, description, [generator]):
+                with counting() as spent:
+                    log = train(generator)
+                stored = {"state": modules.state_dict(), "log": {**log, "spent": spent.as_dict()}}
+                cache.save(kind, description, stored)
     modules.load_state_dict(stored["state"])
     log = dict(stored["log"])
     modules.requires_grad_(False)

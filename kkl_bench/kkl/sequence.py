@@ -30,13 +30,10 @@ from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.gain import simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
-from kkl_bench.kkl.optimize import minimize, resumable
+from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.phase2 import load_or_train
 from kkl_bench.protocol.metrics import rmse
 from kkl_bench.registry import regimes
-
-HELD_OUT_EVERY = 5
-"""Every fifth logged trajectory is held out to validate the fine-tuning."""
 
 
 @dataclass(frozen=True)
@@ -128,10 +125,9 @@ def _train_nominal(context: FitContext, network: nn.Module, config, description)
     x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
     yu, x = inputs(y, u), torch.as_tensor(x, dtype=torch.float32)
     network.set_normalization(yu, x)
-    with resumable(context.cache_dir, description, []):
-        losses = train_windows(
-            network, yu, x, config, context.seed, f"{context.system.name}: {description['kind']}"
-        )
+    losses = train_windows(
+        network, yu, x, config, context.seed, f"{context.system.name}: {description['kind']}"
+    )
     x_val, y_val, u_val = simulate_families(
         context, families, config.rnn_validation, "rnn/validation"
     )
@@ -163,15 +159,14 @@ def _fine_tune(
     nominal = {key: value.clone() for key, value in network.state_dict().items()}
     network.requires_grad_(True)
     tuning = replace(config, rnn_steps=budget.rnn_logged_steps, rnn_lr=budget.rnn_logged_lr)
-    with resumable(context.cache_dir, description, []):
-        losses = train_windows(
-            network,
-            inputs(logged.y[~held_out], logged.u[~held_out]),
-            torch.as_tensor(logged.x[~held_out], dtype=torch.float32),
-            tuning,
-            context.seed,
-            f"{context.system.name}: {description['kind']} on logged data",
-        )
+    losses = train_windows(
+        network,
+        inputs(logged.y[~held_out], logged.u[~held_out]),
+        torch.as_tensor(logged.x[~held_out], dtype=torch.float32),
+        tuning,
+        context.seed,
+        f"{context.system.name}: {description['kind']} on logged data",
+    )
     after = _validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
     if after >= before:
         network.load_state_dict(nominal)
@@ -192,7 +187,10 @@ def fit_sequence_model(
     (and the fine-tuning's), with the optimizer steps and samples each spent."""
     description = {**description, "config": asdict(config)}
     log = load_or_train(
-        context, description, network, lambda: _train_nominal(context, network, config, description)
+        context,
+        description,
+        network,
+        lambda _: _train_nominal(context, network, config, description),
     )
     # no Phase 1: the network's own training is its second phase in the cost table
     report = {"training_log": log, "spent": {"phase2": log["spent"]}}
@@ -204,7 +202,7 @@ def fit_sequence_model(
             "tuning": asdict(budget),
         }
         logged = load_or_train(
-            context, tuning, network, lambda: _fine_tune(context, network, config, budget, tuning)
+            context, tuning, network, lambda _: _fine_tune(context, network, config, budget, tuning)
         )
         report["logged_data_log"] = logged
         report["spent"]["logged_data"] = logged["spent"]
