@@ -575,7 +575,19 @@ def _reference(track: str, regime: str) -> str:
     return declared.task(regime).reference
 
 
-def track_summary(results: pd.DataFrame) -> pd.DataFrame:
+def condition(track: str, regime: str) -> str:
+    """What task ``regime`` of ``track`` changes beside its reference regime: its name
+    without the reference (``params10-square`` -> ``params10``, ``square-sigma0.1`` ->
+    ``sigma0.1``), or the whole name if it does not contain it (``chirp``)."""
+    reference = _reference(track, regime)
+    if regime.startswith(f"{reference}-"):
+        return regime[len(reference) + 1 :]
+    if regime.endswith(f"-{reference}"):
+        return regime[: -len(reference) - 1]
+    return regime
+
+
+def track_summary(results: pd.DataFrame, by_condition: bool = False) -> pd.DataFrame:
     """Per estimator and track: RMSE relative to the estimator's own paper-track RMSE.
 
     For each of the track's cells, the mean RMSE over its non-diverged
@@ -585,7 +597,9 @@ def track_summary(results: pd.DataFrame) -> pd.DataFrame:
     track's cells. ``n_diverged`` and ``n_trajectories`` count the track's
     diverged and scored trajectories. A track with no cell to compare (one of
     other systems, such as ``more-systems``) is left out. Columns: estimator,
-    track, ratio, n_cells, n_diverged, n_trajectories.
+    track, ratio, n_cells, n_diverged, n_trajectories; ``by_condition``: one row
+    per estimator, track and :func:`condition` (column ``condition``, after
+    ``track``), e.g. the mismatch track's ``params10``, ``params25`` and ``sensor``.
     """
     if "track" not in results:
         results = results.assign(track=PAPER_TRACK)
@@ -595,57 +609,65 @@ def track_summary(results: pd.DataFrame) -> pd.DataFrame:
     if PAPER_TRACK not in per_track:
         raise ValueError("the results hold no paper-track cells to compare the tracks with")
     paper = per_track[PAPER_TRACK].set_index(["estimator", "system", "regime"])
-    rows = []
+    cells = []
     for track, summary in per_track.items():
         if track == PAPER_TRACK:
             continue
-        for estimator, cells in summary.groupby("estimator", sort=False):
+        for cell in summary[summary["status"] == "ok"].itertuples():
             # a +logged row is compared with its estimator's own paper-track fit
-            nominal = variants.split_logged(estimator)[0]
-            ratios, diverged, scored = [], 0, 0
-            for cell in cells[cells["status"] == "ok"].itertuples():
-                diverged += cell.n_diverged
-                scored += cell.n_test * cell.n_seeds
-                key = (nominal, cell.system, _reference(track, cell.regime))
-                if key not in paper.index or paper.loc[key, "status"] != "ok":
-                    continue
+            nominal = variants.split_logged(cell.estimator)[0]
+            key = (nominal, cell.system, _reference(track, cell.regime))
+            ratio = math.nan
+            if key in paper.index and paper.loc[key, "status"] == "ok":
                 ratio = _finite_mean(cell.rmse_trajectories) / _finite_mean(
                     paper.loc[key, "rmse_trajectories"]
                 )
-                if math.isfinite(ratio) and ratio > 0:
-                    ratios.append(ratio)
-            rows.append(
+            cells.append(
                 {
-                    "estimator": estimator,
+                    "estimator": cell.estimator,
                     "track": track,
-                    "ratio": float(np.exp(np.mean(np.log(ratios)))) if ratios else math.nan,
-                    "n_cells": len(ratios),
-                    "n_diverged": diverged,
-                    "n_trajectories": scored,
+                    "condition": condition(track, cell.regime),
+                    "ratio": ratio if math.isfinite(ratio) and ratio > 0 else math.nan,
+                    "n_diverged": cell.n_diverged,
+                    "n_trajectories": cell.n_test * cell.n_seeds,
                 }
             )
-    frame = pd.DataFrame(
-        rows, columns=["estimator", "track", "ratio", "n_cells", "n_diverged", "n_trajectories"]
+    keys = ["estimator", "track", *(["condition"] if by_condition else [])]
+    columns = [*keys, "ratio", "n_cells", "n_diverged", "n_trajectories"]
+    if not cells:
+        return pd.DataFrame(columns=columns)
+    frame = (
+        pd.DataFrame(cells)
+        .groupby(keys, sort=False)
+        .agg(
+            ratio=("ratio", lambda r: float(np.exp(np.log(r.dropna()).mean()))),
+            n_cells=("ratio", "count"),
+            n_diverged=("n_diverged", "sum"),
+            n_trajectories=("n_trajectories", "sum"),
+        )
+        .reset_index()[columns]
     )
     comparable = frame.groupby("track")["n_cells"].transform("sum") > 0
     return frame[comparable].reset_index(drop=True)
 
 
-def render_track_summary(frame: pd.DataFrame) -> str:
-    """Markdown: estimators as rows, tracks as columns, ``ratio`` (and diverged counts)."""
-    tracks = list(dict.fromkeys(frame["track"]))
-    indexed = frame.set_index(["estimator", "track"])
+def render_track_summary(frame: pd.DataFrame, column: str = "track") -> str:
+    """Markdown: estimators as rows, the values of ``column`` (``track``, or ``condition``
+    for one track's :func:`track_summary` by condition) as columns, ``ratio`` (and
+    diverged counts)."""
+    headers = list(dict.fromkeys(frame[column]))
+    indexed = frame.set_index(["estimator", column])
     rows = []
     for estimator in dict.fromkeys(frame["estimator"]):
         row = [estimator]
-        for track in tracks:
-            if (estimator, track) not in indexed.index:
+        for header in headers:
+            if (estimator, header) not in indexed.index:
                 row.append("-")
                 continue
-            cell = indexed.loc[(estimator, track)]
+            cell = indexed.loc[(estimator, header)]
             text = f"{cell['ratio']:.3g}x" if math.isfinite(cell["ratio"]) else "-"
             if cell["n_diverged"]:
                 text += f" ({int(cell['n_diverged'])}/{int(cell['n_trajectories'])} diverged)"
             row.append(text)
         rows.append(row)
-    return tabulate(rows, headers=["Estimator", *tracks], tablefmt="github", disable_numparse=True)
+    return tabulate(rows, headers=["Estimator", *headers], tablefmt="github", disable_numparse=True)

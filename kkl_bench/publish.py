@@ -115,14 +115,34 @@ def _settling(name: str) -> bool:
     return track is not None and track.settling
 
 
+def _grouped_conditions(conditions: pd.DataFrame, name: str) -> pd.DataFrame | None:
+    """Track ``name``'s rows of ``conditions`` (:func:`track_summary` by condition) if its
+    tasks group into fewer conditions than tasks (``mismatch``: ``params10``, ``params25``,
+    ``sensor``), else None."""
+    track = find_track(name)
+    if track is None or conditions.empty:
+        return None
+    rows = conditions[conditions["track"] == name]
+    grouped = 1 < rows["condition"].nunique() < len(track.tasks)
+    return rows if grouped else None
+
+
+CONDITIONS_TEXT = (
+    "By condition: the ratio to the estimator's own paper-track RMSE as above, its "
+    "geometric mean taken over the systems and regimes of each condition."
+)
+
+
 def _tracks_markdown(
     tracks: dict[str, pd.DataFrame],
     relative: pd.DataFrame,
+    conditions: pd.DataFrame,
     figure_names: list[str],
     scaling_study: bool = False,
 ) -> str:
     """The README section of the tracks other than the paper's (empty if there are none);
-    ``scaling_study``: link the study ``kkl-bench scaling`` wrote beside it."""
+    ``conditions``: :func:`track_summary` by condition; ``scaling_study``: link the study
+    ``kkl-bench scaling`` wrote beside it."""
     if not tracks:
         return ""
     trajectories = {
@@ -154,6 +174,12 @@ def _tracks_markdown(
             if scaling_study and name == SCALING_TRACK
             else ""
         )
+        grouped = _grouped_conditions(conditions, name)
+        by_condition = (
+            f"{CONDITIONS_TEXT}\n\n{render_track_summary(grouped, 'condition')}\n\n"
+            if grouped is not None
+            else ""
+        )
         sections.append(
             f"""### Track `{name}`
 
@@ -161,7 +187,8 @@ def _tracks_markdown(
 and 8) defines every task.{settling}{scaling}
 
 {render(summary, "markdown", settling=_settling(name))}
-![{name}: RMSE relative to the UKF](figures/relative-rmse-{name}.png)
+
+{by_condition}![{name}: RMSE relative to the UKF](figures/relative-rmse-{name}.png)
 {trajectories.get(name, "")}
 """
         )
@@ -170,7 +197,9 @@ and 8) defines every task.{settling}{scaling}
 Every estimator is fitted once, exactly as for the paper's track (sensor
 noise 0.01, the paper's x0 boxes, its own training inputs), and scored on
 each track's test sets as well: the tracks test generalization, never
-retraining. Marks and spread read as above.
+retraining. The one exception is a `+logged` row of the `mismatch` track:
+the estimator fitted again per true plant, with the data logged on it.
+Marks and spread read as above.
 
 ### Each track relative to the paper track
 
@@ -209,6 +238,7 @@ def _markdown(
     figure_names: list[str],
     tracks: dict[str, pd.DataFrame],
     relative: pd.DataFrame,
+    conditions: pd.DataFrame,
     scaling_study: bool = False,
 ) -> str:
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
@@ -272,7 +302,7 @@ below them the estimation-error norm on a log scale.
 
 {cells}
 
-{_tracks_markdown(tracks, relative, figure_names, scaling_study)}## Provenance
+{_tracks_markdown(tracks, relative, conditions, figure_names, scaling_study)}## Provenance
 
 | what | value |
 |---|---|
@@ -418,27 +448,31 @@ def _ours_with_relative(summary: pd.DataFrame) -> pd.DataFrame:
     return ours
 
 
+RATIO_COLUMNS = {
+    "ratio": "RMSE / paper-track RMSE",
+    "n_diverged": "Diverged",
+    "n_trajectories": "Trajectories",
+}
+"""The page's columns of a :func:`track_summary` frame, after its keys."""
+
+
 def _tracks_html(
-    tracks: dict[str, pd.DataFrame], relative: pd.DataFrame, figure_names: list[str]
+    tracks: dict[str, pd.DataFrame],
+    relative: pd.DataFrame,
+    conditions: pd.DataFrame,
+    figure_names: list[str],
 ) -> str:
     """The page's section of the tracks other than the paper's (empty if there are none)."""
     if not tracks:
         return ""
     parts = [
         "<h2>Tracks</h2>",
-        "<p>Each estimator fitted once as for the paper track and scored on every track. "
+        "<p>Each estimator fitted once as for the paper track and scored on every track "
+        "(a <code>+logged</code> row: fitted again per true plant of <code>mismatch</code>). "
         "Geometric mean over a track's cells of the RMSE over the estimator's own "
         "paper-track RMSE (same system, the task's reference regime; see the README).</p>",
         _html_table(
-            relative,
-            {
-                "estimator": "Estimator",
-                "track": "Track",
-                "ratio": "RMSE / paper-track RMSE",
-                "n_diverged": "Diverged",
-                "n_trajectories": "Trajectories",
-            },
-            "tracks",
+            relative, {"estimator": "Estimator", "track": "Track", **RATIO_COLUMNS}, "tracks"
         ),
     ]
     for name, summary in tracks.items():
@@ -447,10 +481,23 @@ def _tracks_html(
         if _settling(name):
             columns.update(SETTLING_COLUMNS)
         track = find_track(name)
+        grouped = _grouped_conditions(conditions, name)
         parts += [
             f"<h3>Track <code>{html.escape(name)}</code></h3>",
             f"<p>{html.escape(track.description)}</p>" if track else "",
             _html_table(ours, columns, f"track-{name}", ours["mark"]),
+            *(
+                [
+                    f"<p>{html.escape(CONDITIONS_TEXT)}</p>",
+                    _html_table(
+                        grouped,
+                        {"estimator": "Estimator", "condition": "Condition", **RATIO_COLUMNS},
+                        f"track-{name}-conditions",
+                    ),
+                ]
+                if grouped is not None
+                else []
+            ),
             f'<figure><img src="figures/relative-rmse-{name}.svg" '
             f'alt="{html.escape(name)}: RMSE relative to the UKF"></figure>',
             *(
@@ -476,6 +523,7 @@ def _page(
     figure_names: list[str],
     tracks: dict[str, pd.DataFrame],
     relative: pd.DataFrame,
+    conditions: pd.DataFrame,
 ) -> str:
     ours = _ours_with_relative(summary)
     paper = summary[summary["estimator"].str.startswith(PAPER_PREFIX)]
@@ -536,7 +584,7 @@ def _page(
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>
 <figure><img src="figures/cost-accuracy.svg" alt="estimation cost against RMSE"></figure>
 {trajectory_figures}
-{_tracks_html(tracks, relative, figure_names)}
+{_tracks_html(tracks, relative, conditions, figure_names)}
 <h2>Provenance</h2>
 <table><tbody>{provenance}</tbody></table>
 <h2>Reproduce</h2>
@@ -620,17 +668,27 @@ def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
         for name, cells in results[results["track"] != PAPER_TRACK].groupby("track", sort=True)
     }
     relative = track_summary(results) if tracks else pd.DataFrame()
+    conditions = track_summary(results, by_condition=True) if tracks else pd.DataFrame()
     out.mkdir(parents=True, exist_ok=True)
     figure_names = draw_figures(summary, results_dir, profile, out, tracks)
     written = {
         out / "README.md": _markdown(
-            summary, paper, profile, figure_names, tracks, relative, (out / "scaling.md").exists()
+            summary,
+            paper,
+            profile,
+            figure_names,
+            tracks,
+            relative,
+            conditions,
+            (out / "scaling.md").exists(),
         ),
         out / f"{profile}.tex": render(summary, "latex"),
         out / f"{profile}.csv": render(
             summary[~summary["estimator"].str.startswith(PAPER_PREFIX)], "csv"
         ),
-        out / "index.html": _page(summary, paper, profile, figure_names, tracks, relative),
+        out / "index.html": _page(
+            summary, paper, profile, figure_names, tracks, relative, conditions
+        ),
     }
     for name, track_summary_frame in tracks.items():
         written[out / f"{profile}-{name}.tex"] = render(

@@ -187,6 +187,33 @@ def test_track_summary_divides_by_the_reference_regime_of_the_paper_track():
     assert "| a           | 2x           | 1x (2/4 diverged) |" in text
 
 
+def test_track_summary_by_condition_groups_the_tasks_that_change_the_same_thing():
+    def cells(estimator, track, regime, rmse):
+        return results_frame(((estimator, rmse),)).assign(track=track, regime=regime)
+
+    frame = pd.concat(
+        [
+            cells("a", "paper", "sinusoid", [0.1, 0.1]),
+            cells("a", "paper", "square", [0.2, 0.2]),
+            cells("a", "mismatch", "params10-sinusoid", [0.2, 0.2]),  # 2x
+            cells("a", "mismatch", "params10-square", [0.8, 0.8]),  # 4x
+            cells("a", "mismatch", "sensor-square", [0.2, 0.2]),  # 1x
+            cells("a+logged", "mismatch", "params10-square", [0.1, 0.1]),  # 0.5x of a's fit
+        ],
+        ignore_index=True,
+    )
+    by_condition = track_summary(frame, by_condition=True).set_index(["estimator", "condition"])
+    assert by_condition.loc[("a", "params10"), "ratio"] == pytest.approx(math.sqrt(2 * 4))
+    assert by_condition.loc[("a", "params10"), "n_cells"] == 4  # two tasks on two systems
+    assert by_condition.loc[("a", "sensor"), "ratio"] == pytest.approx(1.0)
+    assert by_condition.loc[("a+logged", "params10"), "ratio"] == pytest.approx(0.5)
+    overall = track_summary(frame).set_index("estimator")
+    assert overall.loc["a", "ratio"] == pytest.approx((2 * 4 * 1) ** (1 / 3))
+    text = render_track_summary(track_summary(frame, by_condition=True), "condition")
+    assert text.splitlines()[0].split("|")[2:4] == [" params10   ", " sensor   "]
+    assert "| a+logged    | 0.5x       | -        |" in text
+
+
 def test_settling_columns_follow_each_rmse_column():
     frame = results_frame((("a", [0.1, 0.3, 0.2]), ("b", [0.2, 0.2, 0.2]))).assign(
         track="far-init",
