@@ -9,7 +9,7 @@ import pytest
 from kkl_bench import scaling
 
 
-def cells(estimator, n, rmse, fit_time, status="ok", regimes=("zero", "sinusoid")):
+def cells(estimator, n, rmse, fit_time, status="ok", regimes=("zero", "sinusoid"), report=None):
     return [
         dict(
             estimator=estimator,
@@ -26,6 +26,7 @@ def cells(estimator, n, rmse, fit_time, status="ok", regimes=("zero", "sinusoid"
             nrmse=[0.1, 0.1],
             fit_time_s=fit_time,
             estimate_us_per_step=1.0,
+            fit_report=report,
         )
         for regime in regimes
     ]
@@ -46,6 +47,27 @@ def test_cell_summary_averages_regimes_and_reports_failures():
     assert math.isnan(summary.loc[("big", 10), "rmse"])
     with pytest.raises(ValueError, match="no more-systems cells of lorenz96-n5"):
         scaling.cell_summary(results[results["track"] == "paper"])
+
+
+def test_fit_time_is_the_training_time_of_every_phase_wherever_it_ran():
+    def spent(phase1, phase2):
+        return {"spent": {"phase1": phase1, "phase2": phase2}}
+
+    trained = {"steps": 100, "samples": 10, "seconds": 600.0}
+    results = pd.DataFrame(
+        # Phase 1 loaded from the cache: the fit took 2 s, its trainings 600 + 50 s
+        cells("kkl", 5, 0.1, 2.0, report=spent(trained, {**trained, "seconds": 50.0}))
+        # nothing of its own to train
+        + cells("plain", 5, 0.1, 0.5, report=spent(trained, {"steps": 0, "samples": 0}))
+        # a Phase 1 trained before training times were recorded
+        + cells("old", 5, 0.1, 9.0, report=spent({"steps": 100, "samples": 10}, trained))
+        + cells("ekf", 5, 0.1, 1e-4)  # no training: its wall time
+    )
+    summary = scaling.cell_summary(results).set_index("estimator")["fit_time_s"]
+    assert summary["kkl"] == 650.0
+    assert summary["plain"] == 600.0
+    assert math.isnan(summary["old"])
+    assert summary["ekf"] == 1e-4
 
 
 def frame():

@@ -12,6 +12,8 @@ the result is the same as that of an uninterrupted run for the same seed.
 
 from __future__ import annotations
 
+import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -31,17 +33,20 @@ CHECKPOINT_EVERY = 500
 
 @dataclass
 class Spent:
-    """Training effort: optimizer steps and the training samples they drew.
+    """Training effort: optimizer steps, the training samples they drew, and wall time.
 
     A *sample* is one example a loss evaluates: a (state, latent) pair, a
-    PDE collocation point or an (input window, state) pair.
+    PDE collocation point or an (input window, state) pair. ``seconds`` is the
+    wall time of the :func:`counting` block (data simulation included; after a
+    resume, the time since it resumed).
     """
 
     steps: int = 0
     samples: int = 0
+    seconds: float = 0.0
 
-    def as_dict(self) -> dict[str, int]:
-        return {"steps": self.steps, "samples": self.samples}
+    def as_dict(self) -> dict[str, float]:
+        return {"steps": self.steps, "samples": self.samples, "seconds": self.seconds}
 
 
 _LEDGERS: ContextVar[tuple[Spent, ...]] = ContextVar("kkl_bench_ledgers", default=())
@@ -49,12 +54,15 @@ _LEDGERS: ContextVar[tuple[Spent, ...]] = ContextVar("kkl_bench_ledgers", defaul
 
 @contextmanager
 def counting() -> Iterator[Spent]:
-    """Count what every :func:`minimize` inside the block spends (nested blocks each count)."""
+    """Count what every :func:`minimize` inside the block spends (nested blocks each count),
+    and the block's wall time."""
     spent = Spent()
     token = _LEDGERS.set((*_LEDGERS.get(), spent))
+    start = time.perf_counter()
     try:
         yield spent
     finally:
+        spent.seconds = time.perf_counter() - start
         _LEDGERS.reset(token)
 
 
@@ -99,6 +107,15 @@ class _Resume:
         slots = [self.cache.load(RESUME_KIND, {**call, "slot": slot}) for slot in self.SLOTS]
         stored = max((s for s in slots if s is not None), key=lambda s: s["step"], default=None)
         if stored is None:
+            return 0, []
+        if len(stored["generators"]) != len(self.generators):
+            warnings.warn(
+                f"ignoring the checkpoint of {call['training'].get('kind', 'a training')} at "
+                f"step {stored['step']}: it holds {len(stored['generators'])} random "
+                f"generators, this training draws from {len(self.generators)} (written by "
+                "another version); training from the start",
+                stacklevel=2,
+            )
             return 0, []
         with torch.no_grad():
             for parameter, value in zip(parameters, stored["parameters"], strict=True):
