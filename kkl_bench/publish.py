@@ -23,6 +23,7 @@ import html
 import math
 import re
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -115,6 +116,27 @@ def _settling(name: str) -> bool:
     return track is not None and track.settling
 
 
+@dataclass(frozen=True)
+class TrackTables:
+    """What the folder shows of the tracks other than the paper's.
+
+    summaries: track name -> its :func:`summary_table`; relative: :func:`track_summary`
+    (each track against the paper track); conditions: the same by condition.
+    """
+
+    summaries: dict[str, pd.DataFrame]
+    relative: pd.DataFrame
+    conditions: pd.DataFrame
+
+    @classmethod
+    def of(cls, results: pd.DataFrame) -> TrackTables:
+        others = results[results["track"] != PAPER_TRACK]
+        summaries = {name: summary_table(cells) for name, cells in others.groupby("track")}
+        if not summaries:
+            return cls({}, pd.DataFrame(), pd.DataFrame())
+        return cls(summaries, track_summary(results), track_summary(results, by_condition=True))
+
+
 def _grouped_conditions(conditions: pd.DataFrame, name: str) -> pd.DataFrame | None:
     """Track ``name``'s rows of ``conditions`` (:func:`track_summary` by condition) if its
     tasks group into fewer conditions than tasks (``mismatch``: ``params10``, ``params25``,
@@ -134,15 +156,11 @@ CONDITIONS_TEXT = (
 
 
 def _tracks_markdown(
-    tracks: dict[str, pd.DataFrame],
-    relative: pd.DataFrame,
-    conditions: pd.DataFrame,
-    figure_names: list[str],
-    scaling_study: bool = False,
+    tables: TrackTables, figure_names: list[str], scaling_study: bool = False
 ) -> str:
     """The README section of the tracks other than the paper's (empty if there are none);
-    ``conditions``: :func:`track_summary` by condition; ``scaling_study``: link the study
-    ``kkl-bench scaling`` wrote beside it."""
+    ``scaling_study``: link the study ``kkl-bench scaling`` wrote beside it."""
+    tracks = tables.summaries
     if not tracks:
         return ""
     trajectories = {
@@ -174,7 +192,7 @@ def _tracks_markdown(
             if scaling_study and name == SCALING_TRACK
             else ""
         )
-        grouped = _grouped_conditions(conditions, name)
+        grouped = _grouped_conditions(tables.conditions, name)
         by_condition = (
             f"{CONDITIONS_TEXT}\n\n{render_track_summary(grouped, 'condition')}\n\n"
             if grouped is not None
@@ -210,7 +228,7 @@ the same system under the regime the track's task names as its reference
 these ratios over the track's cells. Below 1: better than on the paper track.
 Diverged trajectories are left out of the ratio and counted beside it.
 
-{render_track_summary(relative)}
+{render_track_summary(tables.relative)}
 
 {"".join(sections)}"""
 
@@ -236,9 +254,7 @@ def _markdown(
     results: pd.DataFrame,
     profile: str,
     figure_names: list[str],
-    tracks: dict[str, pd.DataFrame],
-    relative: pd.DataFrame,
-    conditions: pd.DataFrame,
+    tables: TrackTables,
     scaling_study: bool = False,
 ) -> str:
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
@@ -302,7 +318,7 @@ below them the estimation-error norm on a log scale.
 
 {cells}
 
-{_tracks_markdown(tracks, relative, conditions, figure_names, scaling_study)}## Provenance
+{_tracks_markdown(tables, figure_names, scaling_study)}## Provenance
 
 | what | value |
 |---|---|
@@ -312,7 +328,7 @@ below them the estimation-error norm on a log scale.
 ## Reproduce
 
 ```bash
-{reproduce_commands(profile, estimators, seeds, tracks)}
+{reproduce_commands(profile, estimators, seeds, tables.summaries)}
 ```
 """
 
@@ -456,14 +472,9 @@ RATIO_COLUMNS = {
 """The page's columns of a :func:`track_summary` frame, after its keys."""
 
 
-def _tracks_html(
-    tracks: dict[str, pd.DataFrame],
-    relative: pd.DataFrame,
-    conditions: pd.DataFrame,
-    figure_names: list[str],
-) -> str:
+def _tracks_html(tables: TrackTables, figure_names: list[str]) -> str:
     """The page's section of the tracks other than the paper's (empty if there are none)."""
-    if not tracks:
+    if not tables.summaries:
         return ""
     parts = [
         "<h2>Tracks</h2>",
@@ -472,16 +483,18 @@ def _tracks_html(
         "Geometric mean over a track's cells of the RMSE over the estimator's own "
         "paper-track RMSE (same system, the task's reference regime; see the README).</p>",
         _html_table(
-            relative, {"estimator": "Estimator", "track": "Track", **RATIO_COLUMNS}, "tracks"
+            tables.relative,
+            {"estimator": "Estimator", "track": "Track", **RATIO_COLUMNS},
+            "tracks",
         ),
     ]
-    for name, summary in tracks.items():
+    for name, summary in tables.summaries.items():
         ours = _ours_with_relative(summary)
         columns = dict(RESULT_COLUMNS)
         if _settling(name):
             columns.update(SETTLING_COLUMNS)
         track = find_track(name)
-        grouped = _grouped_conditions(conditions, name)
+        grouped = _grouped_conditions(tables.conditions, name)
         parts += [
             f"<h3>Track <code>{html.escape(name)}</code></h3>",
             f"<p>{html.escape(track.description)}</p>" if track else "",
@@ -521,9 +534,7 @@ def _page(
     results: pd.DataFrame,
     profile: str,
     figure_names: list[str],
-    tracks: dict[str, pd.DataFrame],
-    relative: pd.DataFrame,
-    conditions: pd.DataFrame,
+    tables: TrackTables,
 ) -> str:
     ours = _ours_with_relative(summary)
     paper = summary[summary["estimator"].str.startswith(PAPER_PREFIX)]
@@ -556,7 +567,9 @@ def _page(
         for k, v in _provenance(results).items()
     )
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
-    commands = reproduce_commands(profile, estimators, sorted(set(results["seed"])), tracks)
+    commands = reproduce_commands(
+        profile, estimators, sorted(set(results["seed"])), tables.summaries
+    )
     guide = _inline_markdown(html.escape(_reading_guide(summary))).replace("\n\n", "</p><p>")
     return f"""<!DOCTYPE html>
 <html lang="en">
@@ -584,7 +597,7 @@ def _page(
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>
 <figure><img src="figures/cost-accuracy.svg" alt="estimation cost against RMSE"></figure>
 {trajectory_figures}
-{_tracks_html(tracks, relative, conditions, figure_names)}
+{_tracks_html(tables, figure_names)}
 <h2>Provenance</h2>
 <table><tbody>{provenance}</tbody></table>
 <h2>Reproduce</h2>
@@ -663,34 +676,20 @@ def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
             "them); run `kkl-bench run` with --track paper"
         )
     summary = summary_table(paper, with_paper=True)
-    tracks = {
-        name: summary_table(cells)
-        for name, cells in results[results["track"] != PAPER_TRACK].groupby("track", sort=True)
-    }
-    relative = track_summary(results) if tracks else pd.DataFrame()
-    conditions = track_summary(results, by_condition=True) if tracks else pd.DataFrame()
+    tables = TrackTables.of(results)
     out.mkdir(parents=True, exist_ok=True)
-    figure_names = draw_figures(summary, results_dir, profile, out, tracks)
+    figure_names = draw_figures(summary, results_dir, profile, out, tables.summaries)
     written = {
         out / "README.md": _markdown(
-            summary,
-            paper,
-            profile,
-            figure_names,
-            tracks,
-            relative,
-            conditions,
-            (out / "scaling.md").exists(),
+            summary, paper, profile, figure_names, tables, (out / "scaling.md").exists()
         ),
         out / f"{profile}.tex": render(summary, "latex"),
         out / f"{profile}.csv": render(
             summary[~summary["estimator"].str.startswith(PAPER_PREFIX)], "csv"
         ),
-        out / "index.html": _page(
-            summary, paper, profile, figure_names, tracks, relative, conditions
-        ),
+        out / "index.html": _page(summary, paper, profile, figure_names, tables),
     }
-    for name, track_summary_frame in tracks.items():
+    for name, track_summary_frame in tables.summaries.items():
         written[out / f"{profile}-{name}.tex"] = render(
             track_summary_frame, "latex", settling=_settling(name)
         )
