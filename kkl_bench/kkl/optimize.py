@@ -37,8 +37,10 @@ class Spent:
 
     A *sample* is one example a loss evaluates: a (state, latent) pair, a
     PDE collocation point or an (input window, state) pair. ``seconds`` is the
-    wall time of the :func:`counting` block (data simulation included; after a
-    resume, the time since it resumed).
+    wall time of the :func:`counting` block (data simulation included); a block
+    inside a :func:`resumable` one that resumed from a checkpoint also counts the
+    time the interrupted run had spent up to that checkpoint, so it reads as the
+    wall time of the uninterrupted training.
     """
 
     steps: int = 0
@@ -58,11 +60,14 @@ def counting() -> Iterator[Spent]:
     and the block's wall time."""
     spent = Spent()
     token = _LEDGERS.set((*_LEDGERS.get(), spent))
+    resume = _RESUME.get()
+    credit = resume.credit if resume else 0.0
     start = time.perf_counter()
     try:
         yield spent
     finally:
-        spent.seconds = time.perf_counter() - start
+        credited = (resume.credit if resume else 0.0) - credit
+        spent.seconds = time.perf_counter() - start + credited
         _LEDGERS.reset(token)
 
 
@@ -76,6 +81,12 @@ class _Resume:
     every: int
     calls: int = 0
     written: list[dict[str, Any]] = field(default_factory=list)
+    credit: float = 0.0
+    """s added to the block's wall time: what the interrupted run had spent before the
+    checkpoint it resumed from, less the time this run took to get back there."""
+
+    def __post_init__(self) -> None:
+        self.started = time.perf_counter()
 
     SLOTS = (0, 1)
     """Checkpoints alternate between two slots, so a kill while one is written
@@ -88,6 +99,10 @@ class _Resume:
         self.written += [{**call, "slot": slot} for slot in self.SLOTS]
         return call
 
+    def elapsed(self) -> float:
+        """s of training behind the block's current state, as an uninterrupted run."""
+        return time.perf_counter() - self.started + self.credit
+
     def save(self, call, step, parameters, optimizer, schedule, losses) -> None:
         self.cache.save(
             RESUME_KIND,
@@ -99,6 +114,7 @@ class _Resume:
                 "schedule": schedule.state_dict(),
                 "losses": list(losses),
                 "generators": [g.get_state() for g in self.generators],
+                "seconds": self.elapsed(),
             },
         )
 
@@ -124,6 +140,8 @@ class _Resume:
         schedule.load_state_dict(stored["schedule"])
         for generator, state in zip(self.generators, stored["generators"], strict=True):
             generator.set_state(state)
+        if "seconds" in stored:  # written by a version that timed its checkpoints
+            self.credit += stored["seconds"] - self.elapsed()
         return stored["step"], list(stored["losses"])
 
 
