@@ -254,6 +254,13 @@ def build_parser() -> argparse.ArgumentParser:
     scaling.add_argument(
         "--seed", type=_seed, default=0, help="the training seed whose models are timed (default 0)"
     )
+    scaling.add_argument(
+        "--missing-only",
+        action="store_true",
+        help="time only the fitted (estimator, n) that the study in --out has no online cost "
+        "for, beside the EKF at the same sizes, and keep the other rows' costs (to add an "
+        "estimator or a size without fitting the rest again)",
+    )
 
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")
     cache.add_argument("action", choices=("info", "clear"))
@@ -432,12 +439,19 @@ def _scaling(args: argparse.Namespace) -> int:
         profile=get_profile(profile),
         cache_dir=args.cache or default_cache_dir(),
     )
-    ok = cells[cells["status"] == "ok"]
+    study = args.out / "scaling.csv"
+    stored = scaling.stored_timings(study if args.missing_only else None)
+    wanted = scaling.untimed(cells, stored)
     fitted = {
-        (row.estimator, row.n): scaling.fit_from_cache(spec, row.estimator, row.n, args.seed)
-        for row in tqdm(list(ok.itertuples()), desc="loading fitted models", unit="model")
+        (estimator, n): scaling.fit_from_cache(spec, estimator, n, args.seed)
+        for estimator, n in tqdm(wanted, desc="loading fitted models", unit="model")
     }
-    written = scaling.write_study(cells, scaling.time_estimators(spec, fitted), profile, args.out)
+    if fitted:
+        timings = scaling.timing_frame(scaling.time_estimators(spec, fitted))
+        stored = scaling.add_timings(stored, timings)
+    else:
+        print(f"every fitted estimator already has its online cost in {study}")
+    written = scaling.write_study(cells, stored, profile, args.out)
     print(f"wrote {', '.join(map(str, written))}")
     return _status(args, damaged)
 

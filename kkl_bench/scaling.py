@@ -11,7 +11,10 @@ per estimator:
   of 20 trajectories and of 1, measured here side by side in one run: every
   fitted estimator of every size is loaded first (from the cache the run
   filled), then each is timed ``repeats`` times in turn, round-robin, on one
-  thread, keeping the fastest of its repeats;
+  thread, keeping the fastest of its repeats. A later timing run may add the
+  rows an earlier one lacks (a new estimator, a size trained since), timing the
+  reference EKF at the same sizes beside them: every row carries the EKF's cost
+  *of its own run*, and every comparison with the EKF uses it;
 * the exponent ``p`` of each cost curve, ``cost ~ n^p``, the least-squares
   slope of ``log cost`` against ``log n``.
 
@@ -45,6 +48,12 @@ BATCHES = (20, 1)
 STEPS = 200
 """Samples per timed call: the cost per trajectory-step does not depend on the horizon, and
 the filters' Python loops at n = 40 would take minutes over the whole one."""
+REFERENCE = "ekf"
+"""The estimator every timing run also times, at each size it times anything."""
+ONLINE = tuple(f"us_per_step_batch{batch}" for batch in BATCHES)
+TIMING_COLUMNS = ("timing_run", *ONLINE, *(f"{REFERENCE}_{column}" for column in ONLINE))
+"""What a study stores of its timings, per (estimator, n): the timing run that measured the
+row (1, 2, ...), its online costs and the reference's costs in that run."""
 COSTS = {
     "fit_time_s": "fit time (s)",
     "us_per_step_batch20": "µs / trajectory-step, batch 20",
@@ -167,11 +176,61 @@ def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> Estimato
     return variants.build(estimator).fit(make_fit_context(spec, estimator, system, seed))
 
 
-def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
-    """One row per (estimator, n): :func:`cell_summary`'s columns and the online costs."""
+def timing_frame(timings: pd.DataFrame, run: int = 1) -> pd.DataFrame:
+    """:func:`time_estimators`' long frame as one row per (estimator, n) with
+    :data:`TIMING_COLUMNS`; the reference's costs are those it was timed at in this run."""
     wide = timings.pivot_table(index=["estimator", "n"], columns="batch", values="us_per_step")
     wide.columns = [f"us_per_step_batch{batch}" for batch in wide.columns]
-    frame = cells.merge(wide.reset_index(), on=["estimator", "n"], how="left")
+    wide = wide.reset_index()
+    reference = wide[wide["estimator"] == REFERENCE].drop(columns="estimator")
+    reference.columns = ["n", *(f"{REFERENCE}_{column}" for column in reference.columns[1:])]
+    frame = wide.merge(reference, on="n", how="left").assign(timing_run=run)
+    return frame[["estimator", "n", *TIMING_COLUMNS]]
+
+
+def stored_timings(study: Path | None) -> pd.DataFrame:
+    """The timings of the study written to ``study`` (a ``scaling.csv``), one row per
+    (estimator, n) timed; empty if there is none (or ``study`` is None)."""
+    if study is None or not study.exists():
+        return pd.DataFrame(columns=["estimator", "n", *TIMING_COLUMNS])
+    frame = pd.read_csv(study)
+    frame = frame[frame[list(ONLINE)].notna().any(axis=1)]
+    if "timing_run" not in frame:  # written before studies recorded their timing runs
+        reference = frame.loc[frame["estimator"] == REFERENCE, ["n", *ONLINE]]
+        reference.columns = ["n", *(f"{REFERENCE}_{column}" for column in ONLINE)]
+        frame = frame.merge(reference, on="n", how="left").assign(timing_run=1)
+    return frame[["estimator", "n", *TIMING_COLUMNS]].reset_index(drop=True)
+
+
+def untimed(cells: pd.DataFrame, stored: pd.DataFrame) -> list[tuple[str, int]]:
+    """The ``(estimator, n)`` of ``cells`` that fitted and have no timing in ``stored``, and
+    the reference at each of their sizes (it is timed in every run that times anything)."""
+    timed = set(zip(stored["estimator"], stored["n"], strict=True))
+    ok = cells[cells["status"] == "ok"]
+    missing = [
+        (estimator, int(n))
+        for estimator, n in zip(ok["estimator"], ok["n"], strict=True)
+        if (estimator, n) not in timed
+    ]
+    references = {(REFERENCE, n) for _, n in missing} - set(missing)
+    return sorted(missing + sorted(references))
+
+
+def add_timings(stored: pd.DataFrame, new: pd.DataFrame) -> pd.DataFrame:
+    """``stored``'s rows, and ``new``'s (a later run, numbered after ``stored``'s) for
+    every (estimator, n) ``stored`` lacks; the reference's new rows serve only as their run's
+    comparison and do not replace its stored ones."""
+    run = int(stored["timing_run"].max()) + 1 if len(stored) else 1
+    timed = set(zip(stored["estimator"], stored["n"], strict=True))
+    added = new[[key not in timed for key in zip(new["estimator"], new["n"], strict=True)]]
+    frames = [frame for frame in (stored, added.assign(timing_run=run)) if len(frame)]
+    return pd.concat(frames, ignore_index=True)
+
+
+def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
+    """One row per (estimator, n): :func:`cell_summary`'s columns and the timings
+    (:func:`timing_frame`, :func:`add_timings`)."""
+    frame = cells.merge(timings, on=["estimator", "n"], how="left")
     return frame.sort_values(["estimator", "n"]).reset_index(drop=True)
 
 
@@ -199,18 +258,20 @@ def exponents(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def crossover(frame: pd.DataFrame, reference: str = "ekf") -> dict[tuple[str, int], list[int]]:
-    """Per (estimator other than ``reference``, batch): the measured sizes ``n`` at which it is
-    cheaper online than ``reference``, ascending (empty if it never is)."""
+def crossover(frame: pd.DataFrame) -> dict[tuple[str, int], list[int]]:
+    """Per (estimator other than the reference, batch): the measured sizes ``n`` at which it
+    is cheaper online than the reference timed in the same run, ascending (empty if it
+    never is)."""
     result = {}
     for batch in BATCHES:
         column = f"us_per_step_batch{batch}"
-        ref = frame[frame["estimator"] == reference].set_index("n")[column]
-        for estimator, rows_of in frame[frame["estimator"] != reference].groupby("estimator"):
+        for estimator, rows_of in frame[frame["estimator"] != REFERENCE].groupby("estimator"):
             result[estimator, batch] = sorted(
                 int(n)
-                for n, cost in zip(rows_of["n"], rows_of[column], strict=True)
-                if n in ref.index and cost < ref[n]
+                for n, cost, reference in zip(
+                    rows_of["n"], rows_of[column], rows_of[f"{REFERENCE}_{column}"], strict=True
+                )
+                if cost < reference
             )
     return result
 
@@ -253,7 +314,7 @@ def render_scaling(frame: pd.DataFrame, profile: str) -> str:
             "every KKL row; '-' for a model trained before training times were recorded). "
             "Online cost: the fastest of three timed calls on the first "
             f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
-            "turn in one run on one thread.",
+            f"turn in one run on one thread.{_later_runs(frame)}",
             tabulate(
                 table,
                 ["Estimator", "n", "RMSE", "Fit time (s)", "µs/step, batch 20", "µs/step, batch 1"],
@@ -267,10 +328,37 @@ def render_scaling(frame: pd.DataFrame, profile: str) -> str:
                 tablefmt="github",
                 disable_numparse=True,
             ),
-            "Where each estimator is cheaper online than the EKF (sizes measured):",
+            "Where each estimator is cheaper online than the EKF timed in the same run "
+            "(sizes measured):",
             tabulate(crossings, ["Estimator", "batch 20", "batch 1"], tablefmt="github"),
         ]
     )
+
+
+def _later_runs(frame: pd.DataFrame) -> str:
+    """A sentence per timing run after the first: what it timed, and the reference's costs
+    in it beside those of the run that timed the reference's own rows."""
+    runs = sorted(int(run) for run in frame["timing_run"].dropna().unique())
+    reference = frame[frame["estimator"] == REFERENCE].set_index("n")
+    sentences = []
+    for run in runs[1:]:
+        rows = frame[frame["timing_run"] == run]
+        timed = "; ".join(
+            f"`{estimator}` at n = {', '.join(map(str, sorted(of['n'])))}"
+            for estimator, of in rows.groupby("estimator")
+        )
+        costs = ", ".join(
+            f"n = {row.n}: {_cost(getattr(row, f'{REFERENCE}_{ONLINE[0]}'))} and "
+            f"{_cost(getattr(row, f'{REFERENCE}_{ONLINE[1]}'))} µs/step at batch "
+            f"{BATCHES[0]} and {BATCHES[1]} (run {int(reference.loc[row.n, 'timing_run'])}: "
+            f"{_cost(reference.loc[row.n, ONLINE[0]])} and {_cost(reference.loc[row.n, ONLINE[1]])})"
+            for row in rows.drop_duplicates("n").sort_values("n").itertuples()
+        )
+        sentences.append(
+            f" Timing run {run} added {timed}, beside the {REFERENCE.upper()} at the same "
+            f"sizes ({REFERENCE.upper()} in run {run}: {costs})."
+        )
+    return "".join(sentences)
 
 
 def _cost(value: float) -> str:

@@ -87,8 +87,11 @@ def frame():
                     rmse=0.1,
                     nrmse=0.01,
                     fit_time_s=fit[i],
+                    timing_run=1,
                     us_per_step_batch20=batch20[i],
                     us_per_step_batch1=batch1[i],
+                    ekf_us_per_step_batch20=300.0,
+                    ekf_us_per_step_batch1=400 * size / 5.0,
                 )
             )
     return pd.DataFrame(rows)
@@ -111,8 +114,72 @@ def test_crossover_lists_the_sizes_cheaper_than_the_ekf():
     assert scaling.crossover(costly) == {("kkl", 20): [5, 10, 20, 40], ("kkl", 1): [5, 10, 20, 40]}
     costly.loc[costly["estimator"] == "kkl", "us_per_step_batch20"] *= 50  # 100, 400, 1600, 6400
     assert scaling.crossover(costly)[("kkl", 20)] == [5]
-    costly["us_per_step_batch1"] = 1.0  # as cheap as the EKF: not cheaper
+    costly["us_per_step_batch1"] = 1.0
+    costly["ekf_us_per_step_batch1"] = 1.0  # as cheap as the EKF: not cheaper
     assert scaling.crossover(costly)[("kkl", 1)] == []
+
+
+def test_crossover_compares_each_row_with_the_ekf_of_its_own_timing_run():
+    study = frame()
+    late = (study["estimator"] == "kkl") & (study["n"] == 40)
+    # kkl at n = 40 costs 128 at batch 20, timed later on a machine where the EKF took 100
+    study.loc[late, ["timing_run", "ekf_us_per_step_batch20"]] = [2, 100.0]
+    assert scaling.crossover(study)[("kkl", 20)] == [5, 10, 20]
+
+
+def timings(pairs, cost):
+    """time_estimators' frame: every (estimator, n) at both batches, costing ``cost(name, n)``."""
+    return pd.DataFrame(
+        [
+            {"estimator": name, "n": n, "batch": batch, "us_per_step": cost(name, n) * batch}
+            for name, n in pairs
+            for batch in scaling.BATCHES
+        ]
+    )
+
+
+def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
+    first = scaling.timing_frame(timings([("ekf", 5), ("ekf", 10), ("kkl", 5)], lambda _, n: n))
+    assert first.set_index(["estimator", "n"]).loc[("kkl", 5), "ekf_us_per_step_batch20"] == 100
+    results = pd.DataFrame(
+        cells("ekf", 5, 0.1, 0.0)
+        + cells("ekf", 10, 0.1, 0.0)
+        + cells("kkl", 5, 0.2, 9.0)
+        + cells("kkl", 10, 0.3, 9.0)
+        + cells("gru", 10, math.nan, math.nan, status="error")
+    )
+    summary = scaling.cell_summary(results)
+    scaling.write_study(summary, first, "standard", tmp_path)
+    stored = scaling.stored_timings(tmp_path / "scaling.csv")
+    pd.testing.assert_frame_equal(stored, first, check_dtype=False)
+
+    # kkl at n = 10 was fitted since; the failed gru cell is not timed
+    wanted = scaling.untimed(summary, stored)
+    assert wanted == [("ekf", 10), ("kkl", 10)]
+    second = scaling.timing_frame(timings(wanted, lambda name, n: 3 * n if name == "ekf" else n))
+    merged = scaling.add_timings(stored, second).set_index(["estimator", "n"])
+    assert merged.loc[("kkl", 10), "timing_run"] == 2
+    assert merged.loc[("kkl", 10), "ekf_us_per_step_batch20"] == 600  # its run's EKF
+    assert merged.loc[("ekf", 10), "us_per_step_batch20"] == 200  # the stored EKF stays
+    assert merged.loc[("ekf", 10), "timing_run"] == 1
+    text = scaling.render_scaling(scaling.scaling_frame(summary, merged.reset_index()), "standard")
+    assert (
+        "Timing run 2 added `kkl` at n = 10, beside the EKF at the same sizes (EKF in run 2: "
+        "n = 10: 600 and 30 µs/step at batch 20 and 1 (run 1: 200 and 10))." in text
+    )
+    assert scaling.untimed(summary, merged.reset_index()) == []
+
+
+def test_a_study_written_before_timing_runs_were_recorded_reads_as_run_one(tmp_path):
+    legacy = frame().drop(
+        columns=["timing_run", "ekf_us_per_step_batch20", "ekf_us_per_step_batch1"]
+    )
+    legacy.to_csv(tmp_path / "scaling.csv", index=False)
+    stored = scaling.stored_timings(tmp_path / "scaling.csv").set_index(["estimator", "n"])
+    assert (stored["timing_run"] == 1).all()
+    assert stored.loc[("kkl", 40), "ekf_us_per_step_batch1"] == pytest.approx(3200.0)
+    assert scaling.stored_timings(None).empty
+    assert scaling.stored_timings(tmp_path / "absent.csv").empty
 
 
 def test_report_states_exponents_crossovers_and_failures():
