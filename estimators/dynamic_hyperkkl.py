@@ -11,7 +11,8 @@ Phase-2 loss on forced training data, per window (several states each):
 ``+ pde_weight |dT/dx (f(x) + g u_t) + [T(x; theta_{t+dt}) - T(x; theta_t)] / dt - A T - B h|^2``,
 the paper's objective with its finite-difference time derivative. Weights
 are generated once per window and applied to all of its states with
-``baddbmm``; the perturbation is ``G(c) - G(c_zero)``, and where a window is
+``baddbmm`` (at test time once per distinct window, which a constant or square
+input repeats); the perturbation is ``G(c) - G(c_zero)``, and where a window is
 exactly zero the base decoder is used, so zero input reproduces
 ``autonomous_kkl`` exactly.
 """
@@ -28,11 +29,11 @@ from kkl_bench.kkl.latent import latent_drift
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative, normalized_field_rms
 from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
-from kkl_bench.kkl.windows import WindowEncoder, is_active, sliding_windows
+from kkl_bench.kkl.windows import WindowEncoder, distinct, embed, is_active, sliding_windows
 from kkl_bench.registry import estimators
 
 INFERENCE_CHUNK = 512
-"""Windows whose decoder weights are generated at once at test time (bounds memory)."""
+"""Samples decoded at once at test time (bounds the memory of their generated weights)."""
 
 
 class HyperNetwork(nn.Module):
@@ -160,13 +161,19 @@ class DynamicHyperKKL(KKLEstimator):
         active = torch.nonzero(is_active(windows))[:, 0]
         if active.numel() == 0:
             return x_hat
+        rows, which = distinct(windows[active])
+        contexts = embed(self.hyper_.window_encoder, rows)
+        zero = embed(self.hyper_.window_encoder, torch.zeros_like(rows[:1]))
         flat_z = torch.as_tensor(z.reshape(-1, z.shape[-1]), dtype=torch.float32)
         flat_x = x_hat.reshape(-1, x_hat.shape[-1])
         with torch.no_grad():
-            for rows in active.split(INFERENCE_CHUNK):
-                contexts, zero = self.hyper_.contexts(windows[rows])
-                deltas = self.hyper_.decoder_head(contexts, zero)
-                flat_x[rows.numpy()] = (
-                    self.model_.decoder(flat_z[rows].unsqueeze(1), deltas)[:, 0].double().numpy()
+            # samples grouped by window: each window's weights are generated once per chunk
+            for part in torch.argsort(which).split(INFERENCE_CHUNK):
+                needed, local = torch.unique(which[part], return_inverse=True)
+                deltas = self.hyper_.decoder_head(contexts[needed], zero)
+                samples = active[part]
+                decoded = self.model_.decoder(
+                    flat_z[samples].unsqueeze(1), [(w[local], b[local]) for w, b in deltas]
                 )
+                flat_x[samples.numpy()] = decoded[:, 0].double().numpy()
         return x_hat

@@ -29,11 +29,8 @@ from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
 from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
-from kkl_bench.kkl.windows import WindowEncoder, sliding_windows
+from kkl_bench.kkl.windows import WindowEncoder, embed, sliding_windows
 from kkl_bench.registry import estimators
-
-CONTEXT_CHUNK = 4096
-"""Windows embedded per LSTM call at test time (bounds memory)."""
 
 
 class Injection(nn.Module):
@@ -124,19 +121,13 @@ class StaticHyperKKL(KKLEstimator):
         )
         return {"final_loss": float(np.mean(losses[-50:]))}
 
-    def contexts(self, windows: torch.Tensor) -> torch.Tensor:
-        """``(n, lstm_hidden)`` embeddings of ``windows: (n, window + 1)``."""
-        with torch.no_grad():
-            parts = [self.injection_.window_encoder(part) for part in windows.split(CONTEXT_CHUNK)]
-        return torch.cat(parts) if parts else torch.zeros(0, self.config_.lstm_hidden)
-
     def _injection(self, u: np.ndarray, gain: float):
         """``injection(k, z_k) = gain u_k psi(z_k, c_k)`` (latent units) for ``u: (batch, steps, 1)``.
 
         ``psi`` runs as a :class:`FrozenMLP` in physical latent units; the
-        window embeddings ``c_k`` are computed, and multiplied by ``psi``'s
-        first layer, once for all samples, and only where ``gain u_k`` is
-        non-zero (elsewhere the injection is zero whatever ``c_k`` is).
+        window embeddings ``c_k`` are computed (once per distinct window), and
+        multiplied by ``psi``'s first layer, once for all samples, and only where
+        ``gain u_k`` is non-zero (elsewhere the injection is zero whatever ``c_k`` is).
         """
         encoder = self.model_.encoder
         layers = [layer for layer in self.injection_.body if isinstance(layer, nn.Linear)]
@@ -149,7 +140,7 @@ class StaticHyperKKL(KKLEstimator):
         forced = (u[..., 0] != 0) & (gain != 0)  # (batch, steps)
         windows = sliding_windows(u, self.config_.window)[torch.as_tensor(forced)]
         offsets = np.zeros((*forced.shape, context_weight.shape[1]), dtype=np.float32)
-        offsets[forced] = self.contexts(windows).numpy() @ context_weight
+        offsets[forced] = embed(self.injection_.window_encoder, windows).numpy() @ context_weight
         forced_step = forced.any(axis=0)
 
         def injection(k, z):

@@ -24,7 +24,7 @@ from kkl_bench.kkl.latent import (
 )
 from kkl_bench.kkl.networks import NormalizedMLP, affine_normalization
 from kkl_bench.kkl.pde import directional_derivative, pde_residual
-from kkl_bench.kkl.windows import sliding_windows
+from kkl_bench.kkl.windows import WindowEncoder, distinct, embed, is_active, sliding_windows
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import estimators, regimes, systems
@@ -485,10 +485,11 @@ def torch_injection(estimator, u):
     return injection
 
 
+@pytest.mark.parametrize("regime", ["sinusoid", "square"])  # square repeats its windows
 @pytest.mark.parametrize("name", ["static_hyperkkl", "pure_injection_kkl"])
-def test_frozen_networks_give_the_torch_networks_estimates(fitted_family, name):
+def test_frozen_networks_give_the_torch_networks_estimates(fitted_family, name, regime):
     estimator = fitted_family[name]
-    data = duffing_data("sinusoid")
+    data = duffing_data(regime)
     with torch.no_grad():
         z = estimator.model_.observer.run(data.y, torch_injection(estimator, data.u))
     reference = estimator.model_.decode(z)
@@ -497,6 +498,40 @@ def test_frozen_networks_give_the_torch_networks_estimates(fitted_family, name):
         reference, fitted_family["autonomous_kkl"].estimate(data.t, data.y, data.u)
     )
     np.testing.assert_allclose(estimate, reference, rtol=0, atol=1e-4 * np.abs(reference).max())
+
+
+@pytest.mark.parametrize("regime", ["sinusoid", "square"])
+def test_dynamic_hyperkkl_estimates_equal_per_sample_weight_generation(fitted_family, regime):
+    """The estimate generates weights once per distinct window; generating them for every
+    sample from its own window, as the training does, gives the same estimates."""
+    estimator = fitted_family["dynamic_hyperkkl"]
+    data = duffing_data(regime)
+    z = estimator.model_.observer.run(data.y)
+    windows = sliding_windows(data.u, estimator.config_.window).flatten(0, 1)
+    with torch.no_grad():
+        contexts, zero = estimator.hyper_.contexts(windows)
+        deltas = estimator.hyper_.decoder_head(contexts, zero)
+        z_flat = torch.as_tensor(z.reshape(-1, 1, z.shape[-1]), dtype=torch.float32)
+        reference = estimator.model_.decoder(z_flat, deltas)[:, 0].double().numpy()
+    estimate = estimator.estimate(data.t, data.y, data.u).reshape(reference.shape)
+    active = is_active(windows).numpy()
+    assert active.any() and (regime == "sinusoid" or len(distinct(windows)[0]) < len(windows) / 2)
+    np.testing.assert_allclose(
+        estimate[active], reference[active], rtol=0, atol=1e-5 * np.abs(reference).max()
+    )
+
+
+def test_window_embeddings_are_computed_once_per_distinct_window():
+    torch.manual_seed(0)
+    encoder = WindowEncoder(8)
+    windows = torch.randn(5, 11)[torch.tensor([0, 1, 0, 2, 3, 4, 1, 1])]
+    calls = []
+    encoder.register_forward_hook(lambda module, args, out: calls.append(len(args[0])))
+    embedded = embed(encoder, windows)
+    assert calls == [5]
+    with torch.no_grad():
+        np.testing.assert_allclose(embedded, encoder(windows), rtol=0, atol=1e-6)
+    assert embed(encoder, windows[:0]).shape == (0, 8)
 
 
 def test_guarded_static_hyperkkl_uses_the_gain_with_the_best_validation_score(fitted_family):
