@@ -19,7 +19,7 @@ from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.executors import EXECUTORS
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
-from kkl_bench.results import DamagedCellError, load_results
+from kkl_bench.results import DamagedCellError, load_results, provenance
 from kkl_bench.task import ProfileError, get_profile, load_profiles
 from kkl_bench.tracks import get_track, load_tracks
 
@@ -447,7 +447,8 @@ def _scaling(args: argparse.Namespace) -> int:
         for estimator, n in tqdm(wanted, desc="loading fitted models", unit="model")
     }
     if fitted:
-        timings = scaling.timing_frame(scaling.time_estimators(spec, fitted))
+        commit = provenance()["git_commit"]
+        timings = scaling.timing_frame(scaling.time_estimators(spec, fitted), commit)
         stored = scaling.add_timings(stored, timings)
     else:
         print(f"every fitted estimator already has its online cost in {study}")

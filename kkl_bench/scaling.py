@@ -51,9 +51,15 @@ the filters' Python loops at n = 40 would take minutes over the whole one."""
 REFERENCE = "ekf"
 """The estimator every timing run also times, at each size it times anything."""
 ONLINE = tuple(f"us_per_step_batch{batch}" for batch in BATCHES)
-TIMING_COLUMNS = ("timing_run", *ONLINE, *(f"{REFERENCE}_{column}" for column in ONLINE))
+TIMING_COLUMNS = (
+    "timing_run",
+    "timing_commit",
+    *ONLINE,
+    *(f"{REFERENCE}_{column}" for column in ONLINE),
+)
 """What a study stores of its timings, per (estimator, n): the timing run that measured the
-row (1, 2, ...), its online costs and the reference's costs in that run."""
+row (1, 2, ...), the code's git commit in that run, its online costs and the reference's
+costs in that run."""
 COSTS = {
     "fit_time_s": "fit time (s)",
     "us_per_step_batch20": "µs / trajectory-step, batch 20",
@@ -176,15 +182,16 @@ def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> Estimato
     return variants.build(estimator).fit(make_fit_context(spec, estimator, system, seed))
 
 
-def timing_frame(timings: pd.DataFrame, run: int = 1) -> pd.DataFrame:
+def timing_frame(timings: pd.DataFrame, commit: str | None = None, run: int = 1) -> pd.DataFrame:
     """:func:`time_estimators`' long frame as one row per (estimator, n) with
-    :data:`TIMING_COLUMNS`; the reference's costs are those it was timed at in this run."""
+    :data:`TIMING_COLUMNS`; the reference's costs are those it was timed at in this run,
+    ``commit`` the code's (:func:`kkl_bench.results.provenance`)."""
     wide = timings.pivot_table(index=["estimator", "n"], columns="batch", values="us_per_step")
     wide.columns = [f"us_per_step_batch{batch}" for batch in wide.columns]
     wide = wide.reset_index()
     reference = wide[wide["estimator"] == REFERENCE].drop(columns="estimator")
     reference.columns = ["n", *(f"{REFERENCE}_{column}" for column in reference.columns[1:])]
-    frame = wide.merge(reference, on="n", how="left").assign(timing_run=run)
+    frame = wide.merge(reference, on="n", how="left").assign(timing_run=run, timing_commit=commit)
     return frame[["estimator", "n", *TIMING_COLUMNS]]
 
 
@@ -193,12 +200,12 @@ def stored_timings(study: Path | None) -> pd.DataFrame:
     (estimator, n) timed; empty if there is none (or ``study`` is None)."""
     if study is None or not study.exists():
         return pd.DataFrame(columns=["estimator", "n", *TIMING_COLUMNS])
-    frame = pd.read_csv(study)
+    frame = pd.read_csv(study, dtype={"timing_commit": str})  # a hash may read as a number
     frame = frame[frame[list(ONLINE)].notna().any(axis=1)]
     if "timing_run" not in frame:  # written before studies recorded their timing runs
         reference = frame.loc[frame["estimator"] == REFERENCE, ["n", *ONLINE]]
         reference.columns = ["n", *(f"{REFERENCE}_{column}" for column in ONLINE)]
-        frame = frame.merge(reference, on="n", how="left").assign(timing_run=1)
+        frame = frame.merge(reference, on="n", how="left").assign(timing_run=1, timing_commit=None)
     return frame[["estimator", "n", *TIMING_COLUMNS]].reset_index(drop=True)
 
 
@@ -354,8 +361,10 @@ def _later_runs(frame: pd.DataFrame) -> str:
             f"{_cost(reference.loc[row.n, ONLINE[0]])} and {_cost(reference.loc[row.n, ONLINE[1]])})"
             for row in rows.drop_duplicates("n").sort_values("n").itertuples()
         )
+        commit = rows["timing_commit"].iloc[0]
+        code = f" (code of commit {commit})" if isinstance(commit, str) else ""
         sentences.append(
-            f" Timing run {run} added {timed}, beside the {REFERENCE.upper()} at the same "
+            f" Timing run {run}{code} added {timed}, beside the {REFERENCE.upper()} at the same "
             f"sizes ({REFERENCE.upper()} in run {run}: {costs})."
         )
     return "".join(sentences)

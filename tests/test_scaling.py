@@ -88,6 +88,7 @@ def frame():
                     nrmse=0.01,
                     fit_time_s=fit[i],
                     timing_run=1,
+                    timing_commit="abc",
                     us_per_step_batch20=batch20[i],
                     us_per_step_batch1=batch1[i],
                     ekf_us_per_step_batch20=300.0,
@@ -139,7 +140,8 @@ def timings(pairs, cost):
 
 
 def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
-    first = scaling.timing_frame(timings([("ekf", 5), ("ekf", 10), ("kkl", 5)], lambda _, n: n))
+    pairs = [("ekf", 5), ("ekf", 10), ("kkl", 5)]
+    first = scaling.timing_frame(timings(pairs, lambda _, n: n), commit="1234e56")
     assert first.set_index(["estimator", "n"]).loc[("kkl", 5), "ekf_us_per_step_batch20"] == 100
     results = pd.DataFrame(
         cells("ekf", 5, 0.1, 0.0)
@@ -156,7 +158,9 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
     # kkl at n = 10 was fitted since; the failed gru cell is not timed
     wanted = scaling.untimed(summary, stored)
     assert wanted == [("ekf", 10), ("kkl", 10)]
-    second = scaling.timing_frame(timings(wanted, lambda name, n: 3 * n if name == "ekf" else n))
+    second = scaling.timing_frame(
+        timings(wanted, lambda name, n: 3 * n if name == "ekf" else n), commit="f00d"
+    )
     merged = scaling.add_timings(stored, second).set_index(["estimator", "n"])
     assert merged.loc[("kkl", 10), "timing_run"] == 2
     assert merged.loc[("kkl", 10), "ekf_us_per_step_batch20"] == 600  # its run's EKF
@@ -164,7 +168,7 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
     assert merged.loc[("ekf", 10), "timing_run"] == 1
     text = scaling.render_scaling(scaling.scaling_frame(summary, merged.reset_index()), "standard")
     assert (
-        "Timing run 2 added `kkl` at n = 10, beside the EKF at the same sizes (EKF in run 2: "
+        "Timing run 2 (code of commit f00d) added `kkl` at n = 10, beside the EKF at the same sizes (EKF in run 2: "
         "n = 10: 600 and 30 µs/step at batch 20 and 1 (run 1: 200 and 10))." in text
     )
     assert scaling.untimed(summary, merged.reset_index()) == []
