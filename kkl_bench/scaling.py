@@ -303,8 +303,17 @@ def render_scaling(frame: pd.DataFrame, profile: str) -> str:
                 ]
             )
     fitted = exponents(frame)
+    runs_of = frame.dropna(subset=["timing_run"]).groupby("estimator")["timing_run"].nunique()
+    mixed = set(runs_of[runs_of > 1].index)
     exponent_table = [
-        [row.estimator, *(_exponent(getattr(row, column)) for column in COSTS)]
+        [
+            row.estimator,
+            *(
+                _exponent(getattr(row, column))
+                + (" †" if row.estimator in mixed and column in ONLINE else "")
+                for column in COSTS
+            ),
+        ]
         for row in fitted.itertuples()
     ]
     cheaper = crossover(frame)
@@ -334,6 +343,13 @@ def render_scaling(frame: pd.DataFrame, profile: str) -> str:
                 ["Estimator", "fit time", "online, batch 20", "online, batch 1"],
                 tablefmt="github",
                 disable_numparse=True,
+            )
+            + (
+                "\n\n† fitted to online costs from more than one timing run: the machine's "
+                "speed differs between runs (compare the EKF's costs in each), so the "
+                "exponent mixes that drift in."
+                if mixed
+                else ""
             ),
             "Where each estimator is cheaper online than the EKF timed in the same run "
             "(sizes measured):",

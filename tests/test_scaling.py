@@ -172,6 +172,8 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
         "n = 10: 600 and 30 µs/step at batch 20 and 1 (run 1: 200 and 10))." in text
     )
     assert scaling.untimed(summary, merged.reset_index()) == []
+    assert "| kkl         | 0.00       | 1.00 †             | 1.00 †            |" in text
+    assert "† fitted to online costs from more than one timing run" in text
 
 
 def test_a_study_written_before_timing_runs_were_recorded_reads_as_run_one(tmp_path):
