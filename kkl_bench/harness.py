@@ -322,6 +322,7 @@ def run_job(spec: RunSpec, job: Job) -> JobOutcome:
     :func:`kkl_bench.results.claim`): a concurrent run on the same results
     waits, then scores only the cells still missing.
     """
+    provenance()  # the code's commit now, before a long fit: the checkout may move on meanwhile
     with claim(spec.results_dir, job.estimator, job.system, spec.profile.name, job.seed):
         done = {task: _done(spec, job.estimator, task, job.seed) for task in job.tasks}
         todo = [task for task, cell in done.items() if cell is None]

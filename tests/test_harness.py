@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from kkl_bench import results
 from kkl_bench.estimator import Estimator
 from kkl_bench.harness import RunSpec, run
 from kkl_bench.results import load_results
@@ -117,6 +118,24 @@ def test_an_estimator_is_fitted_once_and_scored_on_every_track(tmp_path, registe
     assert all(len(cell.settling_time_s) == 5 for cell in summary.scored)
     again = run(spec)  # a rerun finds every track's cells done
     assert (len(again.scored), len(again.cached), CountsFits.fits) == (0, 17, 1)
+
+
+def test_cells_record_the_commit_checked_out_when_the_job_started(
+    tmp_path, register_estimator, monkeypatch
+):
+    class CheckoutMovesDuringFit(CentreOfBox):
+        def fit(self, context):
+            monkeypatch.setattr(results, "_git_commit", lambda: "moved-on")
+            return super().fit(context)
+
+    register_estimator("checkout_moves", CheckoutMovesDuringFit)
+    monkeypatch.setattr(results, "_git_commit", lambda: "at-start")
+    results._static_provenance.cache_clear()
+    try:
+        summary = run(spec_for("checkout_moves", tmp_path))
+    finally:
+        results._static_provenance.cache_clear()
+    assert {cell.provenance["git_commit"] for cell in summary.scored} == {"at-start"}
 
 
 def test_regimes_are_task_names_of_the_selected_tracks(tmp_path):
