@@ -231,7 +231,7 @@ def scaling_figure(frame: pd.DataFrame, costs: Mapping[str, str], fitted: pd.Dat
     plt = pyplot()
     names = sorted(set(frame["estimator"]))
     colors = _colors(names)
-    figure, axes = plt.subplots(1, len(costs), figsize=(13, 3.8), constrained_layout=True)
+    figure, axes = plt.subplots(1, len(costs), figsize=(13, 6.2), constrained_layout=True)
     fitted = fitted.set_index("estimator")
     for axis, (column, label) in zip(axes, costs.items(), strict=True):
         for name in names:
@@ -249,7 +249,9 @@ def scaling_figure(frame: pd.DataFrame, costs: Mapping[str, str], fitted: pd.Dat
         axis.set_xlabel("state dimension n")
         axis.set_title(label)
         axis.set_xticks(sorted(set(frame["n"])), [str(n) for n in sorted(set(frame["n"]))])
+        axis.xaxis.set_minor_formatter(plt.NullFormatter())  # only the measured sizes
         axis.grid(alpha=0.3, which="both")
-        axis.legend(fontsize=6)
+        # below the panel: inside, a dozen entries hide the curves
+        axis.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     figure.suptitle("Lorenz-96: cost against the state dimension")
     return figure
