@@ -29,7 +29,7 @@ from kkl_bench.kkl.latent import latent_drift
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative, normalized_field_rms
 from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
-from kkl_bench.kkl.windows import WindowEncoder, distinct, embed, is_active, sliding_windows
+from kkl_bench.kkl.windows import WindowEncoder, distinct, encode, is_active, sliding_windows
 from kkl_bench.registry import estimators
 
 INFERENCE_CHUNK = 512
@@ -162,8 +162,8 @@ class DynamicHyperKKL(KKLEstimator):
         if active.numel() == 0:
             return x_hat
         rows, which = distinct(windows[active])
-        contexts = embed(self.hyper_.window_encoder, rows)
-        zero = embed(self.hyper_.window_encoder, torch.zeros_like(rows[:1]))
+        contexts = encode(self.hyper_.window_encoder, rows)
+        zero = encode(self.hyper_.window_encoder, torch.zeros_like(rows[:1]))
         flat_z = torch.as_tensor(z.reshape(-1, z.shape[-1]), dtype=torch.float32)
         flat_x = x_hat.reshape(-1, x_hat.shape[-1])
         with torch.no_grad():

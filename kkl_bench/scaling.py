@@ -51,12 +51,9 @@ the filters' Python loops at n = 40 would take minutes over the whole one."""
 REFERENCE = "ekf"
 """The estimator every timing run also times, at each size it times anything."""
 ONLINE = tuple(f"us_per_step_batch{batch}" for batch in BATCHES)
-TIMING_COLUMNS = (
-    "timing_run",
-    "timing_commit",
-    *ONLINE,
-    *(f"{REFERENCE}_{column}" for column in ONLINE),
-)
+REFERENCE_ONLINE = tuple(f"{REFERENCE}_{column}" for column in ONLINE)
+"""The reference's online costs in a row's own timing run, beside the row's :data:`ONLINE`."""
+TIMING_COLUMNS = ("timing_run", "timing_commit", *ONLINE, *REFERENCE_ONLINE)
 """What a study stores of its timings, per (estimator, n): the timing run that measured the
 row (1, 2, ...), the code's git commit in that run, its online costs and the reference's
 costs in that run."""
@@ -182,16 +179,22 @@ def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> Estimato
     return variants.build(estimator).fit(make_fit_context(spec, estimator, system, seed))
 
 
-def timing_frame(timings: pd.DataFrame, commit: str | None = None, run: int = 1) -> pd.DataFrame:
+def _beside_reference(frame: pd.DataFrame) -> pd.DataFrame:
+    """``frame`` (estimator, n and :data:`ONLINE`, all from one timing run) with the
+    reference's costs at each row's size as :data:`REFERENCE_ONLINE`."""
+    reference = frame.loc[frame["estimator"] == REFERENCE, ["n", *ONLINE]]
+    reference.columns = ["n", *REFERENCE_ONLINE]
+    return frame.merge(reference, on="n", how="left")
+
+
+def timing_frame(timings: pd.DataFrame, commit: str | None = None) -> pd.DataFrame:
     """:func:`time_estimators`' long frame as one row per (estimator, n) with
     :data:`TIMING_COLUMNS`; the reference's costs are those it was timed at in this run,
-    ``commit`` the code's (:func:`kkl_bench.results.provenance`)."""
+    ``commit`` the code's (:func:`kkl_bench.results.provenance`). The run is numbered 1
+    until :func:`add_timings` places it after a stored study's."""
     wide = timings.pivot_table(index=["estimator", "n"], columns="batch", values="us_per_step")
     wide.columns = [f"us_per_step_batch{batch}" for batch in wide.columns]
-    wide = wide.reset_index()
-    reference = wide[wide["estimator"] == REFERENCE].drop(columns="estimator")
-    reference.columns = ["n", *(f"{REFERENCE}_{column}" for column in reference.columns[1:])]
-    frame = wide.merge(reference, on="n", how="left").assign(timing_run=run, timing_commit=commit)
+    frame = _beside_reference(wide.reset_index()).assign(timing_run=1, timing_commit=commit)
     return frame[["estimator", "n", *TIMING_COLUMNS]]
 
 
@@ -203,9 +206,7 @@ def stored_timings(study: Path | None) -> pd.DataFrame:
     frame = pd.read_csv(study, dtype={"timing_commit": str})  # a hash may read as a number
     frame = frame[frame[list(ONLINE)].notna().any(axis=1)]
     if "timing_run" not in frame:  # written before studies recorded their timing runs
-        reference = frame.loc[frame["estimator"] == REFERENCE, ["n", *ONLINE]]
-        reference.columns = ["n", *(f"{REFERENCE}_{column}" for column in ONLINE)]
-        frame = frame.merge(reference, on="n", how="left").assign(timing_run=1, timing_commit=None)
+        frame = _beside_reference(frame).assign(timing_run=1, timing_commit=None)
     return frame[["estimator", "n", *TIMING_COLUMNS]].reset_index(drop=True)
 
 
@@ -270,13 +271,12 @@ def crossover(frame: pd.DataFrame) -> dict[tuple[str, int], list[int]]:
     is cheaper online than the reference timed in the same run, ascending (empty if it
     never is)."""
     result = {}
-    for batch in BATCHES:
-        column = f"us_per_step_batch{batch}"
+    for batch, column, reference_column in zip(BATCHES, ONLINE, REFERENCE_ONLINE, strict=True):
         for estimator, rows_of in frame[frame["estimator"] != REFERENCE].groupby("estimator"):
             result[estimator, batch] = sorted(
                 int(n)
                 for n, cost, reference in zip(
-                    rows_of["n"], rows_of[column], rows_of[f"{REFERENCE}_{column}"], strict=True
+                    rows_of["n"], rows_of[column], rows_of[reference_column], strict=True
                 )
                 if cost < reference
             )
@@ -371,8 +371,8 @@ def _later_runs(frame: pd.DataFrame) -> str:
             for estimator, of in rows.groupby("estimator")
         )
         costs = ", ".join(
-            f"n = {row.n}: {_cost(getattr(row, f'{REFERENCE}_{ONLINE[0]}'))} and "
-            f"{_cost(getattr(row, f'{REFERENCE}_{ONLINE[1]}'))} µs/step at batch "
+            f"n = {row.n}: {_cost(getattr(row, REFERENCE_ONLINE[0]))} and "
+            f"{_cost(getattr(row, REFERENCE_ONLINE[1]))} µs/step at batch "
             f"{BATCHES[0]} and {BATCHES[1]} (run {int(reference.loc[row.n, 'timing_run'])}: "
             f"{_cost(reference.loc[row.n, ONLINE[0]])} and {_cost(reference.loc[row.n, ONLINE[1]])})"
             for row in rows.drop_duplicates("n").sort_values("n").itertuples()

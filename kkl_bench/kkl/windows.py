@@ -43,13 +43,18 @@ def distinct(windows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.unique(windows, dim=0, return_inverse=True)
 
 
-def embed(encoder: WindowEncoder, windows: torch.Tensor) -> torch.Tensor:
-    """``encoder``'s contexts ``(n, hidden)`` of ``windows: (n, w+1)`` without gradients,
-    computed once per distinct window, in chunks of :data:`INFERENCE_CHUNK`."""
-    rows, which = distinct(windows)
+def encode(encoder: WindowEncoder, windows: torch.Tensor) -> torch.Tensor:
+    """``encoder``'s contexts ``(n, hidden)`` of ``windows: (n, w+1)`` without gradients, in
+    chunks of :data:`INFERENCE_CHUNK` (windows known to be distinct; else :func:`embed`)."""
     with torch.no_grad():
-        parts = [encoder(part) for part in rows.split(INFERENCE_CHUNK)]
-    return torch.cat(parts)[which] if parts else torch.zeros(0, encoder.lstm.hidden_size)
+        parts = [encoder(part) for part in windows.split(INFERENCE_CHUNK)]
+    return torch.cat(parts) if parts else torch.zeros(0, encoder.lstm.hidden_size)
+
+
+def embed(encoder: WindowEncoder, windows: torch.Tensor) -> torch.Tensor:
+    """:func:`encode` computed once per distinct window of ``windows: (n, w+1)``."""
+    rows, which = distinct(windows)
+    return encode(encoder, rows)[which]
 
 
 def is_active(windows: torch.Tensor) -> torch.Tensor:
