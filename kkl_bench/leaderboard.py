@@ -452,9 +452,25 @@ def paper_comparison(summary: pd.DataFrame) -> str:
     return tabulate(rows, headers=header, tablefmt="github", disable_numparse=True)
 
 
-def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
-    """Markdown table: per cell, ``a``'s RMSE over ``b``'s with its 90 % interval and verdict
-    (:func:`kkl_bench.significance.compare`; one-sided tests at 5 %)."""
+COMPARISON_COLUMNS = (
+    "cell",
+    "system",
+    "regime",
+    "rmse_a",
+    "rmse_b",
+    "ratio",
+    "low",
+    "high",
+    "verdict",
+)
+"""Columns of :func:`comparison_frame`."""
+
+
+def comparison_frame(summary: pd.DataFrame, a: str, b: str) -> pd.DataFrame:
+    """Per cell both estimators scored: ``a``'s RMSE over ``b``'s, its 90 % bootstrap
+    interval (``low``, ``high``) and the verdict of :func:`kkl_bench.significance.compare`
+    (``"a lower"``, ``"b lower"``, ``"not distinguishable"`` or ``"diverged"``), in paper
+    order; columns :data:`COMPARISON_COLUMNS`."""
     indexed = summary.set_index(["estimator", "system", "regime"])
     for name in (a, b):
         if name not in set(summary["estimator"]):
@@ -463,10 +479,8 @@ def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
                 f"{', '.join(sorted(set(summary['estimator'])))}"
             )
     rows = []
-    systems = _in_paper_order(summary["system"], SYSTEM_TITLES)
-    regimes = _in_paper_order(summary["regime"], REGIME_TITLES)
-    for system in systems:
-        for regime in regimes:
+    for system in _in_paper_order(summary["system"], SYSTEM_TITLES):
+        for regime in _in_paper_order(summary["regime"], REGIME_TITLES):
             if (a, system, regime) not in indexed.index or (b, system, regime) not in indexed.index:
                 continue
             first, second = indexed.loc[(a, system, regime)], indexed.loc[(b, system, regime)]
@@ -475,19 +489,34 @@ def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
             result = compare(
                 np.asarray(first["rmse_trajectories"]), np.asarray(second["rmse_trajectories"])
             )
-            verdict = {"a lower": f"{a} lower", "b lower": f"{b} lower"}.get(
-                result["verdict"], result["verdict"]
-            )
             rows.append(
-                [
-                    f"{SYSTEM_TITLES.get(system, system)} {REGIME_TITLES.get(regime, regime)}",
-                    f"{first['rmse_mean']:.3g}",
-                    f"{second['rmse_mean']:.3g}",
-                    f"{result['ratio']:.3g}",
-                    f"[{result['low']:.3g}, {result['high']:.3g}]",
-                    verdict,
-                ]
+                {
+                    "cell": f"{SYSTEM_TITLES.get(system, system)} {REGIME_TITLES.get(regime, regime)}",
+                    "system": system,
+                    "regime": regime,
+                    "rmse_a": first["rmse_mean"],
+                    "rmse_b": second["rmse_mean"],
+                    **result,
+                }
             )
+    return pd.DataFrame(rows, columns=list(COMPARISON_COLUMNS))
+
+
+def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
+    """Markdown table of :func:`comparison_frame`, verdicts naming the estimators."""
+    frame = comparison_frame(summary, a, b)
+    names = {"a lower": f"{a} lower", "b lower": f"{b} lower"}
+    rows = [
+        [
+            row.cell,
+            f"{row.rmse_a:.3g}",
+            f"{row.rmse_b:.3g}",
+            f"{row.ratio:.3g}",
+            f"[{row.low:.3g}, {row.high:.3g}]",
+            names.get(row.verdict, row.verdict),
+        ]
+        for row in frame.itertuples()
+    ]
     return tabulate(
         rows,
         headers=["Cell", f"RMSE {a}", f"RMSE {b}", "ratio", "90 % interval", "verdict (5 %)"],

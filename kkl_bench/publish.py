@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from kkl_bench import figures, variants
+from kkl_bench import figures, findings, variants
 from kkl_bench.leaderboard import (
     COST_COLUMNS,
     LIMIT_COLUMNS,
@@ -91,13 +91,23 @@ def _reading_guide(summary: pd.DataFrame) -> str:
         e for e in ours if bases[e] in installed and not estimators.get(bases[e]).uses_seed
     )
     seeds = int(summary["n_seeds"].max())
+    fewer = summary[summary["estimator"].isin(set(ours) - set(single))]
+    fewer = fewer.groupby("estimator")["n_seeds"].max()
+    fewer = fewer[fewer < seeds]
+    short = (
+        " Rows that depend on the seed but ran fewer seeds ("
+        + ", ".join(f"`{name}`: {count}" for name, count in fewer.items())
+        + ") show the spread over the seeds they ran, none for a single seed."
+        if len(fewer)
+        else ""
+    )
     return f"""Each cell reads `RMSE ± std (SMAPE %)`: for every training seed, the mean
 over the test trajectories of the steady-state RMSE; then the mean of those
 over the seeds, `±` their standard deviation over the seeds (sample standard
 deviation), and the mean SMAPE in parentheses. The `Seeds` column says how
 many seeds each row ran (up to {seeds}); the test trajectories are the same
 for every seed and estimator. Estimators that do not depend on the seed
-({", ".join(f"`{n}`" for n in single) or "none"}) were run once and show no spread.
+({", ".join(f"`{n}`" for n in single) or "none"}) were run once and show no spread.{short}
 
 **Bold** marks the lowest RMSE of a column only where it beats every other
 entry by a paired hierarchical bootstrap: 4000 resamples that draw the test
@@ -286,6 +296,12 @@ is the paper's observer, gain 1; our guarded variant is `static_hyperkkl[guard=T
 Below 1: ours is lower. The paper's numbers come from its own test sets.
 
 {paper_comparison(summary)}
+
+## The paper's findings, re-tested
+
+{FINDINGS_GUIDE}
+
+{findings.findings_markdown(summary)}
 
 ## Relative to the UKF
 
@@ -522,6 +538,49 @@ def _tracks_html(tables: TrackTables, figure_names: list[str]) -> str:
     return "\n".join(parts)
 
 
+FINDINGS_GUIDE = """Each claim below is tested cell by cell on the results above: the ratio is
+the first estimator's RMSE over the second's (means over seeds), with its 90 %
+interval from the paired hierarchical bootstrap of the marks. A cell
+*supports* the claim when the interval lies below 1 (a one-sided test at 5 %),
+*contradicts* it when it lies above 1, and is *undecided* otherwise.
+`static_hyperkkl` is the paper's observer (unguarded); the zero input is left
+out of the hypernetwork claims, where a hypernetwork equals the autonomous
+observer by construction. `kkl_bench/findings.py` states the claims."""
+
+FINDING_COLUMNS = {
+    "system": "System",
+    "regime": "Regime",
+    "rmse_a": "RMSE (claimed lower)",
+    "rmse_b": "RMSE (claimed higher)",
+    "ratio": "Ratio",
+    "low": "90 % low",
+    "high": "90 % high",
+    "outcome": "Claim",
+}
+
+
+def _findings_html(summary: pd.DataFrame) -> str:
+    parts = [
+        f"<h2>The paper's findings, re-tested</h2>\n<p>{_inline_markdown(html.escape(FINDINGS_GUIDE))}</p>"
+    ]
+    for number, finding in enumerate(findings.FINDINGS):
+        claims = [c for c in finding.claims if findings.testable(summary, c)]
+        if claims:
+            parts.append(
+                f"<h3>{html.escape(finding.title)}</h3>\n"
+                f"<p>The paper: &ldquo;{html.escape(finding.paper)}&rdquo;.</p>"
+            )
+        for index, claim in enumerate(claims):
+            frame = findings.claim_frame(summary, claim)
+            parts.append(
+                f"<p><code>{html.escape(claim.lower)}</code> lower than "
+                f"<code>{html.escape(claim.higher)}</code>: "
+                f"<strong>{findings.tally(frame)}</strong>.</p>\n"
+                + _html_table(frame, FINDING_COLUMNS, f"finding-{number}-{index}")
+            )
+    return "\n".join(parts) + "\n"
+
+
 def _limit_html(summary: pd.DataFrame) -> str:
     frame = limit_frame(summary)
     if frame.empty:
@@ -591,7 +650,7 @@ def _page(
 {_html_table(ours, RESULT_COLUMNS, "results", ours["mark"])}
 <h2>The paper's numbers</h2>
 {_html_table(paper, paper_columns, "paper")}
-{_limit_html(summary)}<h2>Cost, training budget and map quality</h2>
+{_findings_html(summary)}{_limit_html(summary)}<h2>Cost, training budget and map quality</h2>
 {_html_table(costs, {"estimator": "Estimator", "system": "System", **COST_COLUMNS}, "costs")}
 <h2>Figures</h2>
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>
