@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from kkl_bench.devices import draw_integers
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.hyper import make_head
 from kkl_bench.kkl.latent import latent_drift
@@ -117,9 +118,7 @@ class DynamicHyperKKL(KKLEstimator):
             theta_next = hyper.encoder_head(contexts[n_windows:], zero[n_windows:])
             phi_now = hyper.decoder_head(contexts[:n_windows], zero[:n_windows])
             others = pool[
-                torch.randint(
-                    len(pool), (n_windows, config.collocation_points - 1), generator=generator
-                )
+                draw_integers(len(pool), (n_windows, config.collocation_points - 1), generator)
             ]
             states = torch.cat(
                 [x[trajectory, step].unsqueeze(1), others], dim=1

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from kkl_bench.devices import draw_normal
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import select_gain
@@ -107,7 +108,7 @@ class StaticHyperKKL(KKLEstimator):
             with torch.no_grad():
                 z, dz_along_g = directional_derivative(encoder, states, g.expand_as(states))
                 z_tilde = encoder.normalized_output(z)
-                z_tilde = z_tilde + 0.02 * torch.randn(z_tilde.shape, generator=generator)
+                z_tilde = z_tilde + 0.02 * draw_normal(z_tilde.shape, generator, z_tilde)
                 target = encoder.output_difference(dz_along_g)
             contexts = injection.window_encoder(samples.windows[trajectory, step])
             return (injection(z_tilde, contexts) - target).pow(2).sum(-1).mean()

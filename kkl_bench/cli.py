@@ -16,6 +16,8 @@ from tqdm import tqdm
 
 from kkl_bench import harness, leaderboard, variants
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
+from kkl_bench.devices import DEVICES
+from kkl_bench.devices import resolve as resolve_device
 from kkl_bench.executors import EXECUTORS
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
@@ -179,6 +181,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="ADDRESS",
         help="Dask scheduler address, e.g. tcp://10.0.0.5:8786 (default: start a LocalCluster of --jobs workers)",
     )
+    run.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where torch estimators train: auto (default: cuda if torch sees a GPU, else "
+        "cpu), cpu or cuda; models are cached as CPU tensors and estimates run on the CPU",
+    )
     run.add_argument("--force", action="store_true", help="recompute cells already on disk")
 
     board = commands.add_parser("leaderboard", help="print the leaderboard from stored results")
@@ -298,7 +307,10 @@ def _run(args: argparse.Namespace) -> int:
         results_dir=args.results,
         cache_dir=args.cache or default_cache_dir(),
         force=args.force,
+        device=args.device,
     )
+    if args.scheduler is None:  # local workers: a missing GPU is an error before any work
+        resolve_device(args.device)
     total = sum(len(spec.seeds_for(name)) for name in spec.estimators) * len(spec.tasks())
     with tqdm(
         total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0

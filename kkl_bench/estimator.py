@@ -45,6 +45,8 @@ class FitContext:
     profile: name of the profile being run (``"quick"``, ``"standard"``).
     budget: the profile's training budget for this estimator (free-form keys).
     cache_dir: where the estimator may cache trained models.
+    device: where torch estimators train: ``auto``, ``cpu`` or ``cuda``
+        (:mod:`kkl_bench.devices`); estimates always run on the CPU.
     logged_data: trajectories logged on the true plant (``t, u, x, y``) of a ``mismatch``
         task, given only to estimators that declare ``uses_logged_data``, else None. The
         plant differs from ``system`` (the nominal model) and from what ``training``
@@ -62,6 +64,7 @@ class FitContext:
     budget: dict[str, Any] = field(default_factory=dict)
     cache_dir: Path = field(default_factory=default_cache_dir)
     logged_data: Trajectories | None = None
+    device: str = "cpu"
 
     @property
     def x0_low(self) -> np.ndarray:

@@ -29,6 +29,7 @@ import numpy as np
 
 from kkl_bench import variants
 from kkl_bench.cache import default_cache_dir
+from kkl_bench.devices import check_device
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import execute
 from kkl_bench.plants import logged_data
@@ -76,6 +77,8 @@ class RunSpec:
     cache_dir: Path = field(default_factory=default_cache_dir)
     force: bool = False
     tracks: tuple[str, ...] = (PAPER_TRACK,)
+    device: str = "auto"
+    """Where torch estimators train (:mod:`kkl_bench.devices`); resolved by each worker."""
 
     def __post_init__(self) -> None:
         if not self.estimators:
@@ -103,6 +106,7 @@ class RunSpec:
                 f"track(s) {', '.join(self.tracks)} have no task for system(s) "
                 f"{', '.join(self.systems)}"
             )
+        check_device(self.device)
         if not self.seeds:
             raise ValueError("no seeds selected")
         if any(seed < 0 for seed in self.seeds):
@@ -163,6 +167,7 @@ def make_fit_context(
         budget=spec.profile.budget_for(variants.base_name(estimator)),
         cache_dir=Path(spec.cache_dir),
         logged_data=logged_data,
+        device=spec.device,
     )
 
 

@@ -40,7 +40,7 @@ def train(cache_dir, clock, steps, interrupt_at=None):
 
 def test_the_ledger_counts_steps_samples_and_wall_time(tmp_path, clock):
     spent = train(tmp_path, clock, steps=10)
-    assert spent.as_dict() == {"steps": 20, "samples": 60, "seconds": 20.0}
+    assert spent.as_dict() == {"steps": 20, "samples": 60, "seconds": 20.0, "device": "cpu"}
 
 
 def test_a_resumed_training_counts_the_time_spent_before_the_interruption(tmp_path, clock):

@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
+from kkl_bench.devices import draw_integers, draw_normal, to_numpy, training_on
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
@@ -104,7 +105,7 @@ class AutonomousModel:
     def decode(self, z: np.ndarray) -> np.ndarray:
         """``T*(z)``: ``z: (..., n_z)`` -> ``(..., n_x)`` (float64 numpy)."""
         with torch.no_grad():
-            return self.decoder(torch.as_tensor(z, dtype=torch.float32)).double().numpy()
+            return to_numpy(self.decoder(torch.as_tensor(z, dtype=torch.float32)))
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
         """Input-ignoring estimates ``(batch, steps, n_x)`` from ``y: (batch, steps, n_y)``."""
@@ -174,7 +175,7 @@ def train_decoder(
     """Fit ``decoder`` to pairs ``z: (n, n_z) -> x: (n, n_x)`` in normalized state units."""
 
     def loss(_):
-        rows = torch.randint(len(z), (batch,), generator=generator)
+        rows = draw_integers(len(z), (batch,), generator)
         return decoder.output_difference(decoder(z[rows]) - x[rows]).pow(2).sum(-1).mean()
 
     return minimize(loss, decoder.parameters(), steps, batch, description=description)
@@ -208,7 +209,7 @@ def _select_rates(
         x, z = (_tensor(a) for a in train.scored())
         with seeded(context.seed):
             decoder = NormalizedMLP(system.n_z, system.n_x, config.hidden, config.depth)
-        decoder.set_normalization(z, x)
+        decoder.to(z.device).set_normalization(z, x)
         train_decoder(
             decoder,
             z,
@@ -220,7 +221,7 @@ def _select_rates(
         )
         x_val, z_val = validation.scored()
         with torch.no_grad():
-            rmse = float(np.sqrt(np.mean((decoder(_tensor(z_val)).double().numpy() - x_val) ** 2)))
+            rmse = float(np.sqrt(np.mean((to_numpy(decoder(_tensor(z_val))) - x_val) ** 2)))
         scores[f"{slowest:g}-{fastest:g}"] = rmse
         if best is None or rmse < best[0]:
             best = (rmse, rates)
@@ -240,15 +241,15 @@ def _train_encoder(
     x, z = (_tensor(a) for a in data.settled(burn_in_steps(rates, context.dt)))
     encoder.set_normalization(x, z)
     a, b = (_tensor(m) for m in latent_matrices(rates, system.n_y))
-    collocation = x + config.jitter * x.std(0) * torch.randn(x.shape, generator=generator)
+    collocation = x + config.jitter * x.std(0) * draw_normal(x.shape, generator, x)
     vector_field = system.f(collocation)
     h_collocation = system.h(collocation)
     field_scale = normalized_field_rms(encoder, vector_field)
 
     def loss(_):
-        rows = torch.randint(len(x), (config.batch,), generator=generator)
+        rows = draw_integers(len(x), (config.batch,), generator)
         data_term = encoder.output_difference(encoder(x[rows]) - z[rows]).pow(2).sum(-1).mean()
-        points = torch.randint(len(collocation), (config.batch,), generator=generator)
+        points = draw_integers(len(collocation), (config.batch,), generator)
         residual = pde_residual(
             encoder, collocation[points], vector_field[points], h_collocation[points], a, b
         )
@@ -314,7 +315,10 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
         if stored is None:
             generator = torch.Generator().manual_seed(context.seed)
             with resumable(context.cache_dir, description, [generator]):
-                with counting() as spending:
+                with (
+                    counting() as spending,
+                    training_on(context.device, encoder, decoder) as spending.device,
+                ):
                     rates, selection = _train_phase1(context, config, encoder, decoder, generator)
                 stored = {
                     "encoder": encoder.state_dict(),

@@ -32,8 +32,9 @@ LayerDeltas = Sequence[tuple[torch.Tensor, torch.Tensor]]
 
 @contextlib.contextmanager
 def seeded(seed: int) -> Iterator[None]:
-    """Initialize networks inside this block from ``seed``, leaving the global RNG untouched."""
-    with torch.random.fork_rng():
+    """Initialize networks inside this block from ``seed``, on the CPU (the same initial
+    weights wherever they are trained), leaving the global RNG untouched."""
+    with torch.random.fork_rng(), torch.device("cpu"):
         torch.manual_seed(seed)
         yield
 

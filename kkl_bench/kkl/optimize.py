@@ -36,7 +36,8 @@ class Spent:
     """Training effort: optimizer steps, the training samples they drew, and wall time.
 
     A *sample* is one example a loss evaluates: a (state, latent) pair, a
-    PDE collocation point or an (input window, state) pair. ``seconds`` is the
+    PDE collocation point or an (input window, state) pair. ``device`` is where the
+    training ran (:mod:`kkl_bench.devices`). ``seconds`` is the
     wall time of the :func:`counting` block (data simulation included); a block
     inside a :func:`resumable` one that resumed from a checkpoint also counts the
     time the interrupted run had spent up to that checkpoint, so it reads as the
@@ -46,9 +47,15 @@ class Spent:
     steps: int = 0
     samples: int = 0
     seconds: float = 0.0
+    device: str = "cpu"
 
-    def as_dict(self) -> dict[str, float]:
-        return {"steps": self.steps, "samples": self.samples, "seconds": self.seconds}
+    def as_dict(self) -> dict[str, float | str]:
+        return {
+            "steps": self.steps,
+            "samples": self.samples,
+            "seconds": self.seconds,
+            "device": self.device,
+        }
 
 
 _LEDGERS: ContextVar[tuple[Spent, ...]] = ContextVar("kkl_bench_ledgers", default=())

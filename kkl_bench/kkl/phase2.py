@@ -12,10 +12,10 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 
+from kkl_bench.devices import draw_integers, training_on
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1
 from kkl_bench.kkl.cache import CheckpointCache
@@ -69,8 +69,8 @@ class ForcedSamples:
         leaving ``last_offset`` samples after them."""
         count, steps = self.windows.shape[:2]
         start = steady_state_start(steps)
-        trajectory = torch.randint(count, (n,), generator=generator)
-        step = torch.randint(start, steps - last_offset, (n,), generator=generator)
+        trajectory = draw_integers(count, (n,), generator)
+        step = draw_integers(steps - last_offset, (n,), generator, low=start)
         return trajectory, step
 
     def tensor(self, name: str) -> torch.Tensor:
@@ -112,6 +112,7 @@ def fit_phase2(
         description,
         module,
         lambda generator: train(context, model, config, module, generator),
+        uses=(model.encoder, model.decoder),
     )
     return model, config, module, log
 
@@ -121,8 +122,13 @@ def load_or_train(
     description: dict[str, Any],
     modules: nn.Module,
     train: Callable[[torch.Generator], dict[str, Any]],
+    uses: tuple[nn.Module, ...] = (),
 ) -> dict[str, Any]:
     """Load ``modules``' state from the cache, or call ``train(generator)`` and store it.
+
+    ``train`` runs on ``context.device`` (:func:`kkl_bench.devices.training_on`), with
+    ``modules`` and the other networks it ``uses`` moved there; the state is stored from
+    the CPU.
 
     ``generator`` is seeded with the run's seed and is the only random generator
     ``train`` may draw from; the training is :func:`~kkl_bench.kkl.optimize.resumable`,
@@ -137,7 +143,10 @@ def load_or_train(
         if stored is None:
             generator = torch.Generator().manual_seed(context.seed)
             with resumable(context.cache_dir, description, [generator]):
-                with counting() as spent:
+                with (
+                    counting() as spent,
+                    training_on(context.device, modules, *uses) as spent.device,
+                ):
                     log = train(generator)
                 stored = {"state": modules.state_dict(), "log": {**log, "spent": spent.as_dict()}}
                 cache.save(kind, description, stored)
@@ -145,7 +154,3 @@ def load_or_train(
     log = dict(stored["log"])
     modules.requires_grad_(False)
     return log
-
-
-def to_numpy(tensor: torch.Tensor) -> np.ndarray:
-    return tensor.detach().double().numpy()

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from kkl_bench.devices import to_numpy
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.gain import simulate_families
@@ -141,7 +142,7 @@ def _validation_rmse(network: nn.Module, y, u, x) -> float:
     """Mean RMSE of ``network`` on ``y, u: (n, steps, .)`` against ``x: (n, steps, n_x)``."""
     with torch.no_grad():
         x_hat, _ = network(inputs(y, u))
-    return float(rmse(x, x_hat.double().numpy()).mean())
+    return float(rmse(x, to_numpy(x_hat)).mean())
 
 
 def _fine_tune(
