@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from kkl_bench.leaderboard import comparison_frame
+from kkl_bench.leaderboard import comparison_cells, comparison_frame
 
 OSCILLATORS_AND_ROSSLER = ("duffing", "vdp", "rossler")
 PAPER_SYSTEMS = (*OSCILLATORS_AND_ROSSLER, "lorenz")
@@ -105,21 +105,29 @@ def tally(frame: pd.DataFrame) -> str:
     )
 
 
+def tested(
+    summary: pd.DataFrame,
+) -> list[tuple[int, Finding, list[tuple[Claim, pd.DataFrame]]]]:
+    """Each finding with a claim ``summary`` can test: its index in :data:`FINDINGS`, the
+    finding, and each testable claim with its :func:`claim_frame`."""
+    found = []
+    for index, finding in enumerate(FINDINGS):
+        claims = [claim for claim in finding.claims if testable(summary, claim)]
+        if claims:
+            found.append((index, finding, [(c, claim_frame(summary, c)) for c in claims]))
+    return found
+
+
 def findings_markdown(summary: pd.DataFrame) -> str:
     """One subsection per finding: the paper's words, and per claim its cells' ratios,
     intervals and outcomes with their tally. Claims without results are left out."""
     sections = []
-    for finding in FINDINGS:
-        claims = [claim for claim in finding.claims if testable(summary, claim)]
-        if not claims:
-            continue
+    for _, finding, claims in tested(summary):
         parts = [f'### {finding.title}\n\nThe paper: "{finding.paper}".']
-        for claim in claims:
-            frame = claim_frame(summary, claim)
+        for claim, frame in claims:
             rows = "\n".join(
-                f"| {row.cell} | {row.rmse_a:.3g} | {row.rmse_b:.3g} | {row.ratio:.3g} | "
-                f"[{row.low:.3g}, {row.high:.3g}] | {row.outcome} |"
-                for row in frame.itertuples()
+                "| " + " | ".join(cells) + " |"
+                for cells in comparison_cells(frame, frame["outcome"])
             )
             parts.append(
                 f"`{claim.lower}` lower than `{claim.higher}`: **{tally(frame)}**.\n\n"

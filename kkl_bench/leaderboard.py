@@ -502,23 +502,29 @@ def comparison_frame(summary: pd.DataFrame, a: str, b: str) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=list(COMPARISON_COLUMNS))
 
 
-def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
-    """Markdown table of :func:`comparison_frame`, verdicts naming the estimators."""
-    frame = comparison_frame(summary, a, b)
-    names = {"a lower": f"{a} lower", "b lower": f"{b} lower"}
-    rows = [
+def comparison_cells(frame: pd.DataFrame, last: Sequence[str]) -> list[list[str]]:
+    """Each row of a :func:`comparison_frame` as printed: cell, both RMSEs, ratio and
+    ``[low, high]`` (3 significant digits), then the row's item of ``last``."""
+    return [
         [
             row.cell,
             f"{row.rmse_a:.3g}",
             f"{row.rmse_b:.3g}",
             f"{row.ratio:.3g}",
             f"[{row.low:.3g}, {row.high:.3g}]",
-            names.get(row.verdict, row.verdict),
+            extra,
         ]
-        for row in frame.itertuples()
+        for row, extra in zip(frame.itertuples(), last, strict=True)
     ]
+
+
+def comparison_table(summary: pd.DataFrame, a: str, b: str) -> str:
+    """Markdown table of :func:`comparison_frame`, verdicts naming the estimators."""
+    frame = comparison_frame(summary, a, b)
+    names = {"a lower": f"{a} lower", "b lower": f"{b} lower"}
+    verdicts = [names.get(verdict, verdict) for verdict in frame["verdict"]]
     return tabulate(
-        rows,
+        comparison_cells(frame, verdicts),
         headers=["Cell", f"RMSE {a}", f"RMSE {b}", "ratio", "90 % interval", "verdict (5 %)"],
         tablefmt="github",
         disable_numparse=True,

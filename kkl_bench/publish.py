@@ -563,15 +563,12 @@ def _findings_html(summary: pd.DataFrame) -> str:
     parts = [
         f"<h2>The paper's findings, re-tested</h2>\n<p>{_inline_markdown(html.escape(FINDINGS_GUIDE))}</p>"
     ]
-    for number, finding in enumerate(findings.FINDINGS):
-        claims = [c for c in finding.claims if findings.testable(summary, c)]
-        if claims:
-            parts.append(
-                f"<h3>{html.escape(finding.title)}</h3>\n"
-                f"<p>The paper: &ldquo;{html.escape(finding.paper)}&rdquo;.</p>"
-            )
-        for index, claim in enumerate(claims):
-            frame = findings.claim_frame(summary, claim)
+    for number, finding, claims in findings.tested(summary):
+        parts.append(
+            f"<h3>{html.escape(finding.title)}</h3>\n"
+            f"<p>The paper: &ldquo;{html.escape(finding.paper)}&rdquo;.</p>"
+        )
+        for index, (claim, frame) in enumerate(claims):
             parts.append(
                 f"<p><code>{html.escape(claim.lower)}</code> lower than "
                 f"<code>{html.escape(claim.higher)}</code>: "
