@@ -58,24 +58,40 @@ class AdaptationConfig:
     batch: int = 1024
 
 
-def exact_injection(model: AutonomousModel, g: np.ndarray, u: np.ndarray, gain: float = 1.0):
+class ExactInjection:
     """``injection(k, z_k) = gain dT/dx(T*(z_k)) g u_k`` for :meth:`LatentObserver.run`.
 
     ``u: (batch, steps, 1)``; returns ``(batch, n_z)`` arrays. The maps run as
     :class:`FrozenMLP` copies of the current networks, and not at all where
-    ``gain u_k`` is zero on every trajectory.
+    ``gain u_k`` is zero on every trajectory. Each ``T*(z_k)`` computed on the
+    way is kept: it is that sample's estimate (:meth:`estimates`).
     """
-    decoder, encoder = FrozenMLP.of(model.decoder), FrozenMLP.of(model.encoder)
-    direction = np.asarray(g, dtype=np.float32)
-    forced = u.any(axis=(0, 2)) & (gain != 0)
 
-    def injection(k: int, z: np.ndarray) -> np.ndarray:
-        if not forced[k]:
+    def __init__(self, model: AutonomousModel, g: np.ndarray, u: np.ndarray, gain: float = 1.0):
+        self.model, self.u, self.gain = model, u, gain
+        self.decoder, self.encoder = FrozenMLP.of(model.decoder), FrozenMLP.of(model.encoder)
+        self.direction = np.asarray(g, dtype=np.float32)
+        self.forced = u.any(axis=(0, 2)) & (gain != 0)
+        self.decoded = np.empty((*u.shape[:2], len(self.direction)))
+
+    def __call__(self, k: int, z: np.ndarray) -> np.ndarray:
+        if not self.forced[k]:
             return np.zeros_like(z)
-        _, along_g = encoder.with_tangent(decoder(z), direction)
-        return gain * u[:, k] * along_g
+        x_hat = self.decoder(z)
+        self.decoded[:, k] = x_hat
+        _, along_g = self.encoder.with_tangent(x_hat, self.direction)
+        return self.gain * self.u[:, k] * along_g
 
-    return injection
+    def estimates(self, z: np.ndarray) -> np.ndarray:
+        """``T*(z)`` for the latent trajectories ``z: (batch, steps, n_z)`` this injection
+        drove: the kept ``T*(z_k)`` of the forced samples (equal to decoding them again up
+        to float32 rounding), the others decoded now (``steps`` includes the last sample,
+        which no injection sees). ``(batch, steps, n_x)``."""
+        computed = self.forced.copy()
+        computed[-1] = False
+        x_hat = self.decoded
+        x_hat[:, ~computed] = self.model.decode(z[:, ~computed])
+        return x_hat
 
 
 def adapt(
@@ -97,7 +113,7 @@ def adapt(
     gain, scores = select_gain(
         context,
         model,
-        lambda u, gain: exact_injection(model, system.g, u, gain),
+        lambda u, gain: ExactInjection(model, system.g, u, gain),
         max(1, config.adaptation_trajectories // 2),
         "kkl/adapt/validation",
         config.injection_gains,
@@ -113,7 +129,7 @@ def adapt(
     states = torch.as_tensor(x[:, start:].reshape(-1, system.n_x), dtype=torch.float32)
     model.decoder.requires_grad_(True)
     for round_ in range(config.adaptation_rounds):
-        z = model.observer.run(y, exact_injection(model, system.g, u, gain))
+        z = model.observer.run(y, ExactInjection(model, system.g, u, gain))
         latent = torch.as_tensor(z[:, start:].reshape(-1, z.shape[-1]), dtype=torch.float32)
         losses = train_decoder(
             model.decoder,
@@ -164,5 +180,5 @@ class InjectionKKL(KKLEstimator):
 
     def estimate(self, t, y, u):
         context = self.check_fitted()
-        injection = exact_injection(self.model_, context.system.g, u, self.gain_)
-        return self.model_.decode(self.model_.observer.run(y, injection))
+        injection = ExactInjection(self.model_, context.system.g, u, self.gain_)
+        return injection.estimates(self.model_.observer.run(y, injection))

@@ -271,6 +271,47 @@ def build_parser() -> argparse.ArgumentParser:
         "estimator or a size without fitting the rest again)",
     )
 
+    cost = commands.add_parser(
+        "cost",
+        help="time every estimator's estimate side by side on the paper track (cost.csv)",
+        description="Load each estimator's trained models from the cache (fitting them if "
+        "missing), then time its estimate on every test set of the chosen tracks, all "
+        "estimators in turn in one process, on --threads threads, best of --rounds. Writes "
+        "DIR/cost.csv, which `kkl-bench publish` shows in the cost table in place of the "
+        "times the scoring runs measured (those come from many runs and machine loads).",
+    )
+    cost.add_argument(
+        "--estimator",
+        nargs="+",
+        default=["all"],
+        metavar="NAME",
+        help="estimators or variants to time, or 'all' (default)",
+    )
+    cost.add_argument("--system", nargs="+", metavar="NAME", help="systems (default: all)")
+    cost.add_argument(
+        "--track", nargs="+", default=["paper"], help="tracks whose test sets are timed"
+    )
+    cost.add_argument("--profile", default="standard", help="profile (default standard)")
+    cost.add_argument(
+        "--seed", type=_seed, default=0, help="the training seed whose models are timed (default 0)"
+    )
+    cost.add_argument("--rounds", type=_jobs, default=3, help="timings per call (default 3)")
+    cost.add_argument("--threads", type=_jobs, default=1, help="threads while timing (default 1)")
+    cost.add_argument(
+        "--max-seconds",
+        type=float,
+        default=10.0,
+        help="stop timing a call once its timings add up to this (default 10)",
+    )
+    cost.add_argument(
+        "--out",
+        type=Path,
+        default=Path("leaderboard"),
+        metavar="DIR",
+        help="the folder to write cost.csv to (default leaderboard)",
+    )
+    _add_cache_argument(cost)
+
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")
     cache.add_argument("action", choices=("info", "clear"))
     _add_cache_argument(cache)
@@ -469,6 +510,25 @@ def _scaling(args: argparse.Namespace) -> int:
     return _status(args, damaged)
 
 
+def _cost(args: argparse.Namespace) -> int:
+    from kkl_bench import cost
+
+    spec = harness.RunSpec(
+        estimators=_names(estimators, args.estimator),
+        systems=_names(systems, args.system),
+        regimes=None,
+        tracks=tuple(args.track),
+        profile=get_profile(args.profile),
+        seeds=(args.seed,),
+        cache_dir=args.cache or default_cache_dir(),
+    )
+    out = args.out / cost.COST_FILE
+    rows = cost.measure(spec, out, args.rounds, args.threads, args.max_seconds)
+    print(leaderboard.measured_cost_table(rows))
+    print(f"wrote {out}")
+    return 0
+
+
 def _cache(args: argparse.Namespace) -> int:
     root = args.cache or default_cache_dir()
     if args.action == "clear":
@@ -508,6 +568,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "publish": lambda: _publish(args),
         "plot": lambda: _plot(args),
         "scaling": lambda: _scaling(args),
+        "cost": lambda: _cost(args),
         "check": lambda: _check(args),
     }
     try:

@@ -192,6 +192,22 @@ def fit_context_for_row(
     return make_fit_context(spec, name, system, seed, logged)
 
 
+def warm_up(estimator: Estimator, data: Trajectories) -> None:
+    """Run ``estimator`` untimed on the first :data:`WARM_UP_STEPS` samples of the first
+    trajectory of ``data`` (first-call costs: lazy imports, allocator growth)."""
+    estimator.estimate(
+        data.t[:WARM_UP_STEPS], data.y[:1, :WARM_UP_STEPS].copy(), data.u[:1, :WARM_UP_STEPS].copy()
+    )
+
+
+def timed_estimate(estimator: Estimator, data: Trajectories) -> tuple[np.ndarray, float]:
+    """``estimator``'s estimate ``(batch, steps, n_x)`` on copies of ``data`` and its wall
+    time (s)."""
+    start = time.perf_counter()
+    x_hat = np.asarray(estimator.estimate(data.t.copy(), data.y.copy(), data.u.copy()), dtype=float)
+    return x_hat, time.perf_counter() - start
+
+
 def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
     """Run ``estimator`` on ``test_set`` and compute the protocol's metrics.
 
@@ -201,12 +217,8 @@ def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
     """
     data = test_set.data
     dt = float(data.t[1] - data.t[0])
-    estimator.estimate(
-        data.t[:WARM_UP_STEPS], data.y[:1, :WARM_UP_STEPS].copy(), data.u[:1, :WARM_UP_STEPS].copy()
-    )
-    start = time.perf_counter()
-    x_hat = np.asarray(estimator.estimate(data.t.copy(), data.y.copy(), data.u.copy()), dtype=float)
-    elapsed = time.perf_counter() - start
+    warm_up(estimator, data)
+    x_hat, elapsed = timed_estimate(estimator, data)
     if x_hat.shape != data.x.shape:
         raise ValueError(
             f"estimate returned shape {x_hat.shape}; expected {data.x.shape} (batch, steps, n_x)"

@@ -425,6 +425,29 @@ def cost_table(summary: pd.DataFrame) -> str:
     )
 
 
+def measured_cost_table(costs: pd.DataFrame) -> str:
+    """Markdown table of a ``kkl-bench cost`` measurement (:mod:`kkl_bench.cost`): per
+    estimator, the µs per trajectory-step on each system (mean over its tasks), the
+    largest over all cells, and how many times cheaper than the EKF of the same
+    measurement it is on average (where the EKF was timed)."""
+    per_system = costs.pivot_table(
+        index="estimator", columns="system", values="us_per_trajectory_step", aggfunc="mean"
+    )
+    systems = _in_paper_order(per_system.columns, SYSTEM_TITLES)
+    table = per_system[systems].rename(columns=lambda name: SYSTEM_TITLES.get(name, name))
+    table["largest cell"] = costs.groupby("estimator")["us_per_trajectory_step"].max()
+    if "ekf" in per_system.index:
+        ratios = per_system.loc["ekf"] / per_system
+        table["EKF / this (mean over systems)"] = ratios[systems].mean(axis=1)
+    return tabulate(
+        table.reset_index(),
+        headers=["Estimator (µs / trajectory-step)", *table.columns],
+        tablefmt="github",
+        floatfmt=".3g",
+        showindex=False,
+    )
+
+
 def paper_comparison(summary: pd.DataFrame) -> str:
     """Markdown table: our RMSE over the paper's for each of the paper's methods and cells."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)].set_index(

@@ -29,6 +29,7 @@ from pathlib import Path
 import pandas as pd
 
 from kkl_bench import figures, findings, variants
+from kkl_bench.cost import COST_FILE, read_costs, with_measured_costs
 from kkl_bench.leaderboard import (
     COST_COLUMNS,
     LIMIT_COLUMNS,
@@ -39,6 +40,7 @@ from kkl_bench.leaderboard import (
     cost_table,
     limit_frame,
     limit_table,
+    measured_cost_table,
     paper_comparison,
     render,
     render_track_summary,
@@ -259,6 +261,39 @@ a ratio a little below 1 is the particle filter's own Monte Carlo error).
 """
 
 
+def _cost_source(costs: pd.DataFrame | None) -> str:
+    """Where the estimation column comes from: a ``kkl-bench cost`` measurement, or the
+    scoring runs."""
+    if costs is None or costs.empty:
+        return (
+            "Estimation times are the wall times of the runs that scored the cells: "
+            "several runs on different commits and machine loads, so rows compare only "
+            "roughly (`kkl-bench cost` times them side by side)."
+        )
+    commits = ", ".join(sorted(set(costs["git_commit"].astype(str))))
+    threads = ", ".join(map(str, sorted(set(costs["threads"]))))
+    return (
+        f"Estimation times come from one `kkl-bench cost` run ([`{COST_FILE}`]({COST_FILE}), "
+        f"commit {commits}): every row's trained models (seed "
+        f"{', '.join(map(str, sorted(set(costs['seed']))))}) timed in turn on each test "
+        f"set of 20 trajectories, {threads} thread(s), best of up to "
+        f"{costs['rounds'].max()} timings; rows it did not time show their scoring runs' "
+        "wall times."
+    )
+
+
+def _measured_cost_markdown(costs: pd.DataFrame | None) -> str:
+    """The side-by-side measurement per system, with each row's ratio to the EKF's cost."""
+    if costs is None or costs.empty:
+        return ""
+    return f"""
+Online cost from the same measurement, per system (mean over regimes), the
+largest cell, and the EKF's cost over each row's:
+
+{measured_cost_table(costs)}
+"""
+
+
 def _markdown(
     summary: pd.DataFrame,
     results: pd.DataFrame,
@@ -266,6 +301,7 @@ def _markdown(
     figure_names: list[str],
     tables: TrackTables,
     scaling_study: bool = False,
+    costs: pd.DataFrame | None = None,
 ) -> str:
     estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
     seeds = sorted(set(results["seed"]))
@@ -321,10 +357,10 @@ networks are cached and shared: Phase 1 counts in the fit time of the first
 KKL estimator that trained it, and a variant that changes only how trained
 networks are used online (such as `[guard=True]`) shows only the time to load
 them; a fit resumed from its checkpoints after an interruption shows only
-the time since it resumed.
+the time since it resumed. {_cost_source(costs)}
 
 {cost_table(summary)}
-
+{_measured_cost_markdown(costs)}
 ![Estimation cost against RMSE](figures/cost-accuracy.png)
 
 ## Test trajectory 0 of every cell
@@ -591,6 +627,7 @@ def _page(
     profile: str,
     figure_names: list[str],
     tables: TrackTables,
+    costs: pd.DataFrame | None = None,
 ) -> str:
     ours = _ours_with_relative(summary)
     paper = summary[summary["estimator"].str.startswith(PAPER_PREFIX)]
@@ -601,7 +638,7 @@ def _page(
         "rmse_mean": "RMSE",
         "smape_mean": "SMAPE %",
     }
-    costs = cost_frame(summary)
+    cost_rows = cost_frame(summary)
     options = "".join(
         f'<option value="{k}">{html.escape(v)}</option>'
         for k, v in SYSTEM_TITLES.items()
@@ -648,7 +685,8 @@ def _page(
 <h2>The paper's numbers</h2>
 {_html_table(paper, paper_columns, "paper")}
 {_findings_html(summary)}{_limit_html(summary)}<h2>Cost, training budget and map quality</h2>
-{_html_table(costs, {"estimator": "Estimator", "system": "System", **COST_COLUMNS}, "costs")}
+<p>{html.escape(_cost_source(costs))}</p>
+{_html_table(cost_rows, {"estimator": "Estimator", "system": "System", **COST_COLUMNS}, "costs")}
 <h2>Figures</h2>
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>
 <figure><img src="figures/cost-accuracy.svg" alt="estimation cost against RMSE"></figure>
@@ -732,18 +770,22 @@ def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
             "them); run `kkl-bench run` with --track paper"
         )
     summary = summary_table(paper, with_paper=True)
+    costs = read_costs(out / COST_FILE)
+    if costs is not None:
+        costs = costs[costs["track"] == PAPER_TRACK]
+        summary = with_measured_costs(summary, costs)
     tables = TrackTables.of(results)
     out.mkdir(parents=True, exist_ok=True)
     figure_names = draw_figures(summary, results_dir, profile, out, tables.summaries)
     written = {
         out / "README.md": _markdown(
-            summary, paper, profile, figure_names, tables, (out / "scaling.md").exists()
+            summary, paper, profile, figure_names, tables, (out / "scaling.md").exists(), costs
         ),
         out / f"{profile}.tex": render(summary, "latex"),
         out / f"{profile}.csv": render(
             summary[~summary["estimator"].str.startswith(PAPER_PREFIX)], "csv"
         ),
-        out / "index.html": _page(summary, paper, profile, figure_names, tables),
+        out / "index.html": _page(summary, paper, profile, figure_names, tables, costs),
     }
     for name, track_summary_frame in tables.summaries.items():
         written[out / f"{profile}-{name}.tex"] = render(

@@ -25,17 +25,15 @@ Everything the study reports is in the frame :func:`scaling_frame` returns;
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from tqdm.auto import tqdm
 
 from kkl_bench import variants
+from kkl_bench.cost import fastest_round_robin
 from kkl_bench.estimator import Estimator
-from kkl_bench.executors import thread_limit
 from kkl_bench.harness import RunSpec, make_fit_context
 from kkl_bench.leaderboard import summary_table
 from kkl_bench.systems.lorenz96 import SIZES
@@ -155,22 +153,24 @@ def time_estimators(
             batch: (data.t[:STEPS], data.y[rows[batch], :STEPS], data.u[rows[batch], :STEPS])
             for batch in BATCHES
         }
-    best: dict[tuple[str, int, int], float] = {}
-    with thread_limit(1):
-        rounds = [(key, batch) for _ in range(repeats) for key in fitted for batch in BATCHES]
-        for (name, n), batch in tqdm(rounds, desc="timing", unit="call"):
-            t, y, u = inputs[n][batch]
-            start = time.perf_counter()
-            fitted[name, n].estimate(t, y.copy(), u.copy())
-            seconds = time.perf_counter() - start
-            key = (name, n, batch)
-            best[key] = min(best.get(key, math.inf), seconds * 1e6 / (batch * len(t)))
+    calls = {
+        (name, n, batch): _estimate_call(estimator, *inputs[n][batch])
+        for (name, n), estimator in fitted.items()
+        for batch in BATCHES
+    }
+    seconds, _ = fastest_round_robin(calls, rounds=repeats, max_seconds=math.inf)
+    best = {key: value * 1e6 / (key[2] * STEPS) for key, value in seconds.items()}
     return pd.DataFrame(
         [
             {"estimator": name, "n": n, "batch": batch, "us_per_step": value}
             for (name, n, batch), value in best.items()
         ]
     )
+
+
+def _estimate_call(estimator: Estimator, t, y, u):
+    """``estimator.estimate`` on fresh copies of ``y`` and ``u`` at every call."""
+    return lambda: estimator.estimate(t, y.copy(), u.copy())
 
 
 def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> Estimator:

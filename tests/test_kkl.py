@@ -6,7 +6,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from kkl_bench.estimators.injection_kkl import exact_injection
+from kkl_bench.estimators.injection_kkl import ExactInjection
 from scipy.integrate import solve_ivp
 from scipy.linalg import solve_sylvester
 
@@ -206,14 +206,18 @@ def test_frozen_mlp_equals_the_torch_network_and_its_tangent():
         whiten_outputs=True,
     )
     x, v = torch.randn(20, 3), torch.tensor([0.0, 1.0, 0.5])
+    directions = torch.randn(20, 3)
     with torch.no_grad():
         value, tangent = network.forward_with_tangent(x, v.expand_as(x))
+        _, tangents = network.forward_with_tangent(x, directions)
     frozen = FrozenMLP.of(network)
     frozen_value, frozen_tangent = frozen.with_tangent(x.numpy(), v.numpy())
+    _, frozen_tangents = frozen.with_tangent(x.numpy(), directions.numpy())
     for got, expected in (
         (frozen(x.numpy()), value),
         (frozen_value, value),
         (frozen_tangent, tangent),
+        (frozen_tangents, tangents),
     ):
         assert got.dtype == np.float32
         np.testing.assert_allclose(got, expected.numpy(), rtol=0, atol=1e-5 * expected.abs().max())
@@ -319,7 +323,7 @@ def test_injection_of_an_exact_linear_map_is_exactly_m_g():
     model = exact_linear_model()
     exact = model.encoder.weight.detach().double().numpy()
     u = np.array([[[0.5]], [[-2.0]]])
-    phi = exact_injection(model, HarmonicOscillator.g, u)(
+    phi = ExactInjection(model, HarmonicOscillator.g, u)(
         0, np.random.default_rng(0).normal(size=(2, 5))
     )
     np.testing.assert_allclose(
@@ -333,7 +337,7 @@ def test_gain_selection_keeps_the_full_injection_of_exact_maps(tmp_path):
     gain, scores = select_gain(
         context,
         model,
-        lambda u, gain: exact_injection(model, HarmonicOscillator.g, u, gain),
+        lambda u, gain: ExactInjection(model, HarmonicOscillator.g, u, gain),
         4,
         "check",
     )
@@ -345,7 +349,7 @@ def test_gain_selection_ranks_a_diverging_gain_last(tmp_path):
     model = exact_linear_model()
 
     def injection_for(u, gain):
-        exact = exact_injection(model, HarmonicOscillator.g, u, 1.0)
+        exact = ExactInjection(model, HarmonicOscillator.g, u, 1.0)
         if gain == 1.0:
             return lambda k, z: exact(k, z) + (np.nan if k == 500 else 0.0)
         return lambda k, z: gain * exact(k, z)

@@ -9,6 +9,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from kkl_bench.cli import main
@@ -223,3 +224,34 @@ def test_the_page_sorts_and_filters_in_a_real_browser(published, tmp_path):
         assert (tmp_path / "leaderboard-page.png").stat().st_size > 10_000
     finally:
         driver.quit()
+
+
+def test_a_cost_measurement_replaces_the_scoring_runs_times(results, tmp_path):
+    """With a ``kkl-bench cost`` file in the folder, the cost table shows its times."""
+    from kkl_bench.cost import COLUMNS, COST_FILE
+
+    measured = {
+        "estimator": "ekf",
+        "system": "duffing",
+        "track": "paper",
+        "trajectories": 20,
+        "rounds": 3,
+        "threads": 1,
+        "seed": 0,
+        "git_commit": "abc1234",
+    }
+    rows = [
+        {**measured, "regime": regime, "us_per_trajectory_step": value}
+        for regime, value in (("zero", 111.0), ("square", 333.0))
+    ]
+    pd.DataFrame(rows, columns=COLUMNS).to_csv(tmp_path / COST_FILE, index=False)
+    arguments = ["publish", "--results", str(results), "--profile", "quick"]
+    assert main([*arguments, "--out", str(tmp_path)]) == 0
+    readme = (tmp_path / "README.md").read_text()
+    assert "Estimation times come from one `kkl-bench cost` run" in readme
+    assert "commit abc1234" in readme
+    ekf_duffing = next(
+        line for line in readme.splitlines() if re.match(r"\| ekf +\| duffing ", line)
+    )
+    assert " 222 " in ekf_duffing  # the mean of the two measured regimes
+    assert "Estimation times come from one" in (tmp_path / "index.html").read_text()

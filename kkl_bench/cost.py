@@ -1,0 +1,180 @@
+"""Online cost of every estimator, timed side by side in one run (``kkl-bench cost``).
+
+A cell's ``estimate_us_per_step`` is the wall time of the run that scored it.
+The cells of a leaderboard are scored by many runs (several commits and
+sessions, one or two jobs on the machine), so those times do not compare
+with one another. :func:`measure` times ``estimate`` again for every
+(estimator, system, task) of a :class:`~kkl_bench.harness.RunSpec` in one
+process, in turn, on the same test sets, with the trained models of the cache
+(fitted if missing), on ``threads`` threads, best of ``rounds``.
+
+One thread is the default: it is what each worker of ``kkl-bench run --jobs 2``
+has on two cores, and all the filters' Python loops use. The published cost
+table reads the result (:data:`COST_FILE`) in place of the cells' own times.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import time
+from collections.abc import Callable, Hashable
+from pathlib import Path
+
+import pandas as pd
+from tqdm import tqdm
+
+from kkl_bench import variants
+from kkl_bench.executors import thread_limit
+from kkl_bench.harness import RunSpec, make_fit_context, timed_estimate, warm_up
+from kkl_bench.results import provenance
+from kkl_bench.task import make_test_set
+
+COST_FILE = "cost.csv"
+"""The measurement's file name in the leaderboard folder."""
+
+COLUMNS = [
+    "estimator",
+    "system",
+    "track",
+    "regime",
+    "trajectories",
+    "us_per_trajectory_step",
+    "rounds",
+    "threads",
+    "seed",
+    "git_commit",
+]
+
+
+def fastest_round_robin(
+    calls: dict[Hashable, Callable[[], object]],
+    rounds: int = 3,
+    threads: int = 1,
+    max_seconds: float = 10.0,
+    after_round: Callable[[dict[Hashable, float], dict[Hashable, int]], None] = lambda *_: None,
+) -> tuple[dict[Hashable, float], dict[Hashable, int]]:
+    """The fastest wall time (s) of each call and how many times it was timed.
+
+    The calls are timed in turn, round after round, on ``threads`` threads, so a slow
+    spell of the machine falls on all of them alike (callers warm them up first). A call stops being timed after ``rounds`` timings, or earlier once its
+    timings add up to ``max_seconds`` (it is always timed once). ``after_round(best,
+    counts)`` is called after each round (to save what is measured so far).
+    """
+    if rounds < 1 or threads < 1 or max_seconds <= 0:
+        raise ValueError(
+            f"rounds and threads must be at least 1 and max_seconds positive; got rounds="
+            f"{rounds}, threads={threads}, max_seconds={max_seconds}"
+        )
+    best: dict[Hashable, float] = {}
+    counts = dict.fromkeys(calls, 0)
+    spent = dict.fromkeys(calls, 0.0)
+    with thread_limit(threads):
+        for round_ in range(rounds):
+            due = [key for key in calls if counts[key] == 0 or spent[key] < max_seconds]
+            if not due:
+                break
+            for key in tqdm(due, desc=f"timing, round {round_ + 1}/{rounds}", unit="call"):
+                start = time.perf_counter()
+                calls[key]()
+                seconds = time.perf_counter() - start
+                best[key] = min(best.get(key, math.inf), seconds)
+                counts[key] += 1
+                spent[key] += seconds
+            after_round(best, counts)
+    return best, counts
+
+
+def measure(
+    spec: RunSpec, out: Path, rounds: int = 3, threads: int = 1, max_seconds: float = 10.0
+) -> pd.DataFrame:
+    """Time ``estimate`` of every estimator of ``spec`` on the test set of every task of
+    ``spec`` (:func:`fastest_round_robin`), and write one row per (estimator, system,
+    task) to ``out`` (CSV, :data:`COLUMNS`).
+
+    Each estimator is fitted once per system with the first seed it runs with (from the
+    cache when it holds the model). ``out`` is rewritten after every round: an
+    interrupted run keeps what it measured. Returns the rows.
+    """
+    fitted, test_sets = {}, {}
+    for name, system in tqdm(
+        [(name, system) for name in spec.estimators for system in spec.systems],
+        desc="loading fitted models",
+        unit="model",
+    ):
+        seed = spec.seeds_for(name)[0]
+        fitted[name, system] = (
+            variants.build(name).fit(make_fit_context(spec, name, system, seed)),
+            seed,
+        )
+        for task in spec.tasks(system):
+            test_sets.setdefault(task, make_test_set(task, spec.profile.n_test).data)
+    calls = {
+        (name, task): functools.partial(timed_estimate, fitted[name, task.system][0], data)
+        for name in spec.estimators
+        for task, data in test_sets.items()
+        if (name, task.system) in fitted
+    }
+    with thread_limit(threads):
+        for (name, task), data in zip(calls, (test_sets[task] for _, task in calls), strict=True):
+            warm_up(fitted[name, task.system][0], data)
+    commit = provenance()["git_commit"]
+
+    def rows(best: dict, counts: dict) -> pd.DataFrame:
+        return pd.DataFrame(
+            [
+                {
+                    "estimator": name,
+                    "system": task.system,
+                    "track": task.track,
+                    "regime": task.regime,
+                    "trajectories": test_sets[task].y.shape[0],
+                    "us_per_trajectory_step": 1e6 * seconds / test_sets[task].y[..., 0].size,
+                    "rounds": counts[name, task],
+                    "threads": threads,
+                    "seed": fitted[name, task.system][1],
+                    "git_commit": commit,
+                }
+                for (name, task), seconds in best.items()
+            ],
+            columns=COLUMNS,
+        )
+
+    def save(best: dict, counts: dict) -> None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        partial = out.with_name(out.name + ".partial")
+        rows(best, counts).to_csv(partial, index=False, float_format="%.6g")
+        os.replace(partial, out)
+
+    best, counts = fastest_round_robin(calls, rounds, threads, max_seconds, save)
+    return rows(best, counts)
+
+
+def read_costs(path: Path) -> pd.DataFrame | None:
+    """The rows :func:`measure` wrote to ``path``, or None if there is no such file.
+
+    Raises ``ValueError`` naming the file and the missing columns if it is not one."""
+    if not path.exists():
+        return None
+    costs = pd.read_csv(path)
+    missing = [column for column in COLUMNS if column not in costs.columns]
+    if missing:
+        raise ValueError(
+            f"{path} is not a `kkl-bench cost` measurement: no column(s) {', '.join(missing)}"
+        )
+    return costs
+
+
+def with_measured_costs(summary: pd.DataFrame, costs: pd.DataFrame) -> pd.DataFrame:
+    """``summary`` (one row per estimator, system and regime) with ``estimate_us_per_step``
+    taken from ``costs`` where they have a row for it (an estimator's online cost does not
+    depend on its training seed); the rows ``costs`` lack keep the cells' own times."""
+    measured = costs.set_index(["estimator", "system", "regime"])["us_per_trajectory_step"]
+    keys = pd.MultiIndex.from_frame(summary[["estimator", "system", "regime"]])
+    replaced = measured.reindex(keys).to_numpy()
+    summary = summary.copy()
+    summary["estimate_us_per_step"] = summary["estimate_us_per_step"].where(
+        pd.isna(replaced), replaced
+    )
+    return summary
