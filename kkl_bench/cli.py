@@ -46,17 +46,23 @@ examples:
 
 
 def _names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:
-    """``requested`` validated against ``registry``; ``None`` or ``all`` means every name.
+    """``requested`` validated against ``registry``; ``None`` means every name, and ``all``
+    among others stands for every name in its place (``all 'static_hyperkkl[guard=True]'``).
 
     Estimators may be variants (``static_hyperkkl[guard=True]``), returned canonical.
     """
-    if not requested or list(requested) == ["all"]:
+    if not requested:
         return tuple(registry.names())
+    requested = [name for entry in requested for name in _expand_all(registry, entry)]
     if registry is estimators:
         return tuple(dict.fromkeys(variants.canonical(name) for name in requested))
     for name in requested:
         registry.get(name)  # raises an error that lists the valid names
     return tuple(dict.fromkeys(requested))
+
+
+def _expand_all(registry, entry: str) -> list[str]:
+    return list(registry.names()) if entry == "all" else [entry]
 
 
 def _jobs(text: str) -> int:

@@ -209,3 +209,12 @@ def test_leaderboard_of_a_track_not_run_says_how_to_run_it(tmp_path, capsys):
     assert "| Van der Pol Zero | settle (s) |" in capsys.readouterr().out.replace("  ", "")
     assert main(["leaderboard", "--track", "summary", *args]) == 0
     assert "| ekf" in capsys.readouterr().out
+
+
+def test_all_beside_variants_stands_for_every_registered_estimator():
+    from kkl_bench.cli import _names
+    from kkl_bench.registry import estimators
+
+    names = _names(estimators, ["all", "static_hyperkkl[guard=True]"])
+    assert names == (*estimators.names(), "static_hyperkkl[guard=True]")
+    assert _names(estimators, ["all"]) == _names(estimators, None) == tuple(estimators.names())

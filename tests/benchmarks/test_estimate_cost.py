@@ -38,8 +38,9 @@ FEW_STEPS = {
     "rnn_steps": 20,
 }
 LEARNED = sorted(set(estimators.names()) - {"ekf", "ukf"})
-BATCHES = {"ekf": (1, 20), "ukf": (1, 20)}
-"""Trajectories per call; the filters' loops are too slow for 1000 (learned: 1, 20, 1000)."""
+BATCHES = {"ekf": (1, 20), "ukf": (1, 20), "particle_filter": (1, 20)}
+"""Trajectories per call; the filters' loops are too slow for 1000 (the others: 1, 20, 1000;
+the particle filter's 1000 would take about 30 minutes)."""
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -85,3 +86,18 @@ def test_estimate(benchmark, fitted, name, batch):
         benchmark.stats.stats.min / (batch * len(t)) * 1e6
     )
     assert estimate.shape == (batch, len(t), 2)
+
+
+@pytest.mark.parametrize("rows", [20, 1000])
+def test_float32_matrix_product_throughput(benchmark, rows):
+    """The floor under every network's online cost: one thread's float32 product of a
+    ``(rows, 128)`` block with a ``128 x 128`` weight (a hidden layer of the chaotic
+    systems' networks at the standard batch and at 1000 trajectories), in GFLOP/s."""
+    rng = np.random.default_rng(0)
+    block = rng.standard_normal((rows, 128), dtype=np.float32)
+    weight = rng.standard_normal((128, 128), dtype=np.float32)
+    product = np.empty((rows, 128), dtype=np.float32)
+    benchmark.group = "float32 matrix product"
+    benchmark(np.matmul, block, weight, out=product)
+    benchmark.extra_info["gflop_per_s"] = 2 * rows * 128 * 128 / benchmark.stats.stats.min / 1e9
+    np.testing.assert_allclose(product, block @ weight, rtol=1e-5, atol=1e-3)
