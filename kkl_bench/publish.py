@@ -449,7 +449,9 @@ def _number(value) -> str:
 
 
 def _inline_markdown(text: str) -> str:
-    """The inline Markdown the reading guide uses (`code`, **bold**, *italics*) as HTML."""
+    """The inline Markdown the reading guide uses (`code`, **bold**, *italics*, [links](to))
+    as HTML."""
+    text = re.sub(r"\[([^\]]+)\]\(([^)\s]+)\)", r'<a href="\2">\1</a>', text)
     text = re.sub(r"`([^`]+)`", r"<code>\1</code>", text)
     text = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", text)
     return re.sub(r"\*([^*]+)\*", r"<em>\1</em>", text)
@@ -685,7 +687,7 @@ def _page(
 <h2>The paper's numbers</h2>
 {_html_table(paper, paper_columns, "paper")}
 {_findings_html(summary)}{_limit_html(summary)}<h2>Cost, training budget and map quality</h2>
-<p>{html.escape(_cost_source(costs))}</p>
+<p>{_inline_markdown(html.escape(_cost_source(costs)))}</p>
 {_html_table(cost_rows, {"estimator": "Estimator", "system": "System", **COST_COLUMNS}, "costs")}
 <h2>Figures</h2>
 <figure><img src="figures/relative-rmse.svg" alt="RMSE relative to the UKF"></figure>

@@ -254,4 +254,6 @@ def test_a_cost_measurement_replaces_the_scoring_runs_times(results, tmp_path):
         line for line in readme.splitlines() if re.match(r"\| ekf +\| duffing ", line)
     )
     assert " 222 " in ekf_duffing  # the mean of the two measured regimes
-    assert "Estimation times come from one" in (tmp_path / "index.html").read_text()
+    page = (tmp_path / "index.html").read_text()
+    assert "Estimation times come from one <code>kkl-bench cost</code> run" in page
+    assert '(<a href="cost.csv"><code>cost.csv</code></a>, commit abc1234)' in page

@@ -103,14 +103,26 @@ class AutonomousModel:
         }
 
     def decode(self, z: np.ndarray) -> np.ndarray:
-        """``T*(z)``: ``z: (..., n_z)`` -> ``(..., n_x)`` (float64 numpy)."""
+        """``T*(z)``: ``z: (..., n_z)`` -> ``(..., n_x)`` (float64 numpy).
+
+        Samples are decoded :data:`DECODE_CHUNK` at a time: a block's hidden activations
+        stay in cache (a million samples at once spend most of their time in memory).
+        """
+        flat = torch.as_tensor(np.reshape(z, (-1, np.shape(z)[-1])), dtype=torch.float32)
         with torch.no_grad():
-            return to_numpy(self.decoder(torch.as_tensor(z, dtype=torch.float32)))
+            x_hat = torch.cat([self.decoder(part) for part in flat.split(DECODE_CHUNK)])
+        return to_numpy(x_hat).reshape(*np.shape(z)[:-1], -1)
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
         """Input-ignoring estimates ``(batch, steps, n_x)`` from ``y: (batch, steps, n_y)``."""
         return self.decode(self.observer.run(y))
 
+
+DECODE_CHUNK = 8192
+"""Samples per decoder call at test time. Decoding 1000 test trajectories (1001 samples
+each, one thread, side by side): 1.36 us per sample at once, 0.43-0.55 in blocks of
+4096-16384 (Duffing's 64-wide decoder); 3.5 against 1.4-1.6 (Lorenz's 128-wide one);
+the same numbers."""
 
 TRAIN_BOXES = ("auto", "covering", "protocol")
 
