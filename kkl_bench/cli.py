@@ -40,6 +40,7 @@ examples:
   kkl-bench plot --results results --out figures
   kkl-bench run --estimator all --profile standard --jobs 2
   kkl-bench run --estimator ekf --executor dask --scheduler tcp://scheduler:8786
+  kkl-bench cost --estimator all 'static_hyperkkl[guard=True]' --out leaderboard
   kkl-bench cache info
   kkl-bench check my_estimator
 """
