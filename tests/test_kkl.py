@@ -6,6 +6,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from kkl_bench.estimators.dynamic_hyperkkl import SHARED_WINDOW
 from kkl_bench.estimators.injection_kkl import ExactInjection
 from scipy.integrate import solve_ivp
 from scipy.linalg import solve_sylvester
@@ -504,10 +505,11 @@ def test_frozen_networks_give_the_torch_networks_estimates(fitted_family, name, 
     np.testing.assert_allclose(estimate, reference, rtol=0, atol=1e-4 * np.abs(reference).max())
 
 
-@pytest.mark.parametrize("regime", ["sinusoid", "square"])
+@pytest.mark.parametrize("regime", ["sinusoid", "square", "constant"])
 def test_dynamic_hyperkkl_estimates_equal_per_sample_weight_generation(fitted_family, regime):
-    """The estimate generates weights once per distinct window; generating them for every
-    sample from its own window, as the training does, gives the same estimates."""
+    """The estimate generates weights once per distinct window and applies a window shared
+    by many samples to all of them at once; generating them for every sample from its own
+    window, as the training does, gives the same estimates."""
     estimator = fitted_family["dynamic_hyperkkl"]
     data = duffing_data(regime)
     z = estimator.model_.observer.run(data.y)
@@ -519,7 +521,9 @@ def test_dynamic_hyperkkl_estimates_equal_per_sample_weight_generation(fitted_fa
         reference = estimator.model_.decoder(z_flat, deltas)[:, 0].double().numpy()
     estimate = estimator.estimate(data.t, data.y, data.u).reshape(reference.shape)
     active = is_active(windows).numpy()
-    assert active.any() and (regime == "sinusoid" or len(distinct(windows)[0]) < len(windows) / 2)
+    counts = torch.bincount(distinct(windows[active])[1])
+    assert active.any() and (regime == "sinusoid" or len(counts) < len(windows) / 2)
+    assert (regime == "sinusoid") != bool((counts >= SHARED_WINDOW).any())
     np.testing.assert_allclose(
         estimate[active], reference[active], rtol=0, atol=1e-5 * np.abs(reference).max()
     )
