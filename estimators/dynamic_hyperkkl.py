@@ -171,23 +171,23 @@ class DynamicHyperKKL(KKLEstimator):
         flat_z = torch.as_tensor(z.reshape(-1, z.shape[-1]), dtype=torch.float32)
         flat_x = x_hat.reshape(-1, x_hat.shape[-1])
         counts = torch.bincount(which, minlength=len(rows))
-        groups = active[torch.argsort(which, stable=True)].split(counts.tolist())
+        order = torch.argsort(which, stable=True)  # active samples grouped by window
+        starts = torch.cumsum(counts, 0) - counts
         shared = torch.nonzero(counts >= SHARED_WINDOW)[:, 0]
         with torch.no_grad():
             # a window many samples share: its weights applied to all of them at once
             for part in _chunks(shared, INFERENCE_CHUNK // 8):
                 deltas = self.hyper_.decoder_head(contexts[part], zero)
                 for i, window in enumerate(part.tolist()):
-                    samples = groups[window]
+                    samples = active[order[starts[window] : starts[window] + counts[window]]]
                     decoded = self.model_.decoder(
                         flat_z[samples].unsqueeze(0),
                         [(w[i : i + 1], b[i : i + 1]) for w, b in deltas],
                     )
                     flat_x[samples.numpy()] = decoded[0].double().numpy()
             # the others sample by sample, grouped by window: weights generated once per chunk
-            alone = counts < SHARED_WINDOW
-            rest = torch.nonzero(alone[which])[:, 0]
-            for part in _chunks(rest[torch.argsort(which[rest], stable=True)], INFERENCE_CHUNK):
+            rest = order[counts[which[order]] < SHARED_WINDOW]
+            for part in _chunks(rest, INFERENCE_CHUNK):
                 needed, local = torch.unique(which[part], return_inverse=True)
                 deltas = self.hyper_.decoder_head(contexts[needed], zero)
                 samples = active[part]

@@ -111,12 +111,16 @@ def _add_reading_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_drawing_arguments(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
-    """The reading arguments and ``--out`` of the commands that draw from results."""
-    _add_reading_arguments(parser)
+def _add_out_argument(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
     parser.add_argument(
         "--out", type=Path, default=out, metavar="DIR", help=f"{where} (default {out})"
     )
+
+
+def _add_drawing_arguments(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
+    """The reading arguments and ``--out`` of the commands that draw from results."""
+    _add_reading_arguments(parser)
+    _add_out_argument(parser, out, where)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -310,13 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=10.0,
         help="stop timing a call once its timings add up to this (default 10)",
     )
-    cost.add_argument(
-        "--out",
-        type=Path,
-        default=Path("leaderboard"),
-        metavar="DIR",
-        help="the folder to write cost.csv to (default leaderboard)",
-    )
+    _add_out_argument(cost, Path("leaderboard"), "the folder to write cost.csv to")
     _add_cache_argument(cost)
 
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")

@@ -58,9 +58,10 @@ def fastest_round_robin(
     """The fastest wall time (s) of each call and how many times it was timed.
 
     The calls are timed in turn, round after round, on ``threads`` threads, so a slow
-    spell of the machine falls on all of them alike (callers warm them up first). A call stops being timed after ``rounds`` timings, or earlier once its
-    timings add up to ``max_seconds`` (it is always timed once). ``after_round(best,
-    counts)`` is called after each round (to save what is measured so far).
+    spell of the machine falls on all of them alike (callers warm them up first). A call
+    stops being timed after ``rounds`` timings, or earlier once its timings add up to
+    ``max_seconds`` (it is always timed once). ``after_round(best, counts)`` is called
+    after each round (to save what is measured so far).
     """
     if rounds < 1 or threads < 1 or max_seconds <= 0:
         raise ValueError(
@@ -103,22 +104,18 @@ def measure(
         desc="loading fitted models",
         unit="model",
     ):
-        seed = spec.seeds_for(name)[0]
-        fitted[name, system] = (
-            variants.build(name).fit(make_fit_context(spec, name, system, seed)),
-            seed,
-        )
+        context = make_fit_context(spec, name, system, spec.seeds_for(name)[0])
+        fitted[name, system] = variants.build(name).fit(context)
         for task in spec.tasks(system):
             test_sets.setdefault(task, make_test_set(task, spec.profile.n_test).data)
     calls = {
-        (name, task): functools.partial(timed_estimate, fitted[name, task.system][0], data)
+        (name, task): functools.partial(timed_estimate, fitted[name, task.system], data)
         for name in spec.estimators
         for task, data in test_sets.items()
-        if (name, task.system) in fitted
     }
     with thread_limit(threads):
-        for (name, task), data in zip(calls, (test_sets[task] for _, task in calls), strict=True):
-            warm_up(fitted[name, task.system][0], data)
+        for name, task in calls:
+            warm_up(fitted[name, task.system], test_sets[task])
     commit = provenance()["git_commit"]
 
     def rows(best: dict, counts: dict) -> pd.DataFrame:
@@ -133,7 +130,7 @@ def measure(
                     "us_per_trajectory_step": 1e6 * seconds / test_sets[task].y[..., 0].size,
                     "rounds": counts[name, task],
                     "threads": threads,
-                    "seed": fitted[name, task.system][1],
+                    "seed": spec.seeds_for(name)[0],
                     "git_commit": commit,
                 }
                 for (name, task), seconds in best.items()

@@ -276,7 +276,8 @@ def _cost_source(costs: pd.DataFrame | None) -> str:
         f"Estimation times come from one `kkl-bench cost` run ([`{COST_FILE}`]({COST_FILE}), "
         f"commit {commits}): every row's trained models (seed "
         f"{', '.join(map(str, sorted(set(costs['seed']))))}) timed in turn on each test "
-        f"set of 20 trajectories, {threads} thread(s), best of up to "
+        f"set of {', '.join(map(str, sorted(set(costs['trajectories']))))} trajectories, "
+        f"{threads} thread(s), best of up to "
         f"{costs['rounds'].max()} timings; rows it did not time show their scoring runs' "
         "wall times."
     )
