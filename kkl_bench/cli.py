@@ -7,14 +7,19 @@ and the conformance kit.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import shlex
 import sys
-from collections.abc import Sequence
+import threading
+import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pandas as pd
 from tqdm import tqdm
 
 from kkl_bench import harness, leaderboard, variants
+from kkl_bench import status as job_status
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.devices import DEVICES
 from kkl_bench.devices import resolve as resolve_device
@@ -22,7 +27,9 @@ from kkl_bench.executors import EXECUTORS
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import PluginLoadError, UnknownNameError, estimators, regimes, systems
 from kkl_bench.results import DamagedCellError, load_results, provenance
+from kkl_bench.significance import MARGIN
 from kkl_bench.task import ProfileError, get_profile, load_profiles
+from kkl_bench.testing import CHECK_SYSTEMS
 from kkl_bench.tracks import get_track, load_tracks
 
 EXAMPLES = """\
@@ -250,6 +257,18 @@ def build_parser() -> argparse.ArgumentParser:
         "and a static index.html. The same results give byte-identical files.",
     )
     _add_drawing_arguments(publish, Path("leaderboard"), "the folder to write")
+    publish.add_argument(
+        "--margin",
+        type=float,
+        default=MARGIN,
+        help=f"practical-equivalence margin of the bold marks: a win must be by more than "
+        f"this fraction (default {MARGIN:g})",
+    )
+    publish.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a board of another profile or results folder in --out (default: refuse)",
+    )
 
     plot = commands.add_parser(
         "plot",
@@ -287,9 +306,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="time every estimator's estimate side by side on the paper track (cost.csv)",
         description="Load each estimator's trained models from the cache (fitting them if "
         "missing), then time its estimate on every test set of the chosen tracks, all "
-        "estimators in turn in one process, on --threads threads, best of --rounds. Writes "
-        "DIR/cost.csv, which `kkl-bench publish` shows in the cost table in place of the "
-        "times the scoring runs measured (those come from many runs and machine loads).",
+        "estimators and the EKF beside them in turn in one process, on --threads threads, "
+        "best of --rounds. Merges the rows into DIR/cost.csv (the other rows keep their own "
+        "runs; --replace rewrites it), which `kkl-bench publish` shows in the cost table in "
+        "place of the times the scoring runs measured (those come from many runs and "
+        "machine loads).",
     )
     cost.add_argument(
         "--estimator",
@@ -314,7 +335,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=10.0,
         help="stop timing a call once its timings add up to this (default 10)",
     )
-    _add_out_argument(cost, Path("leaderboard"), "the folder to write cost.csv to")
+    cost.add_argument(
+        "--replace",
+        action="store_true",
+        help="rewrite cost.csv with this run's rows only (default: merge them into it)",
+    )
+    _add_out_argument(cost, Path("leaderboard"), "the folder whose cost.csv to merge into")
     _add_cache_argument(cost)
 
     cache = commands.add_parser("cache", help="show or clear the cache of trained models")
@@ -323,15 +349,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     check = commands.add_parser("check", help="run the conformance checks on an estimator")
     check.add_argument("estimator", metavar="NAME", help="estimator name or variant")
-    check.add_argument("--system", default="duffing", help="system to check on (default duffing)")
+    check.add_argument(
+        "--system",
+        nargs="+",
+        default=list(CHECK_SYSTEMS),
+        metavar="NAME",
+        help=f"systems to check on, one fit each (default: {' '.join(CHECK_SYSTEMS)}, a two- "
+        "and a three-state system)",
+    )
     return parser
 
 
 def _list() -> int:
     for registry in (systems, regimes, estimators):
+        broken = registry.broken()  # imports every plugin: list only what works
         print(f"{registry.kind}s: {', '.join(registry.names())}")
-        for name, reason in registry.failures().items():
-            print(f"  (failed to load {name}: {reason})")
+        for name, reason in broken.items():
+            print(f"  BROKEN {registry.kind} {name} (not usable): {reason}")
     for track in load_tracks().values():
         print(
             f"track {track.name}@v{track.version} ({len(track.tasks)} tasks x "
@@ -354,28 +388,62 @@ def _run(args: argparse.Namespace) -> int:
         cache_dir=args.cache or default_cache_dir(),
         force=args.force,
         device=args.device,
+        command=args.command_line,
     )
     if args.scheduler is None:  # local workers: a missing GPU is an error before any work
         resolve_device(args.device)
     total = sum(len(spec.seeds_for(name)) for name in spec.estimators) * len(spec.tasks())
-    with tqdm(
-        total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0
-    ) as bar:
+    with (
+        tqdm(
+            total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0
+        ) as bar,
+        _showing_jobs(bar, spec.results_dir / ".claims" / spec.profile.name),
+    ):
 
         def progress(cell, status):
-            bar.set_postfix_str(f"{cell.estimator} {cell.task}: {status}")
             if status == "error":
                 tqdm.write(f"error in {cell.estimator} {cell.task}: {cell.error.splitlines()[-1]}")
             bar.update()
 
-        summary = harness.run(
-            spec, progress, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler
-        )
+        try:
+            summary = harness.run(
+                spec, progress, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler
+            )
+        except KeyboardInterrupt:
+            print(f"kkl-bench: interrupted; {RESUME}", file=sys.stderr)
+            return 130
     print(
         f"{len(summary.scored)} cells scored, {len(summary.cached)} already done, "
         f"{len(summary.failed)} failed; results in {spec.results_dir}/{spec.profile.name}/"
+        + (f"; {RESUME}" if summary.failed else "")
     )
     return 0 if summary.ok else 1
+
+
+RESUME = (
+    "every finished cell is saved; run the same command again to resume (finished cells "
+    "are skipped, failed and missing ones computed)"
+)
+
+
+@contextlib.contextmanager
+def _showing_jobs(bar: tqdm, claims: Path, every_s: float = 1.0) -> Iterator[None]:
+    """Show beside ``bar``, every ``every_s`` seconds, what each running job says it does
+    (:mod:`kkl_bench.status`): which estimator fits or scores on which system, and how
+    far its training is."""
+    since, stop = time.time() - 1.0, threading.Event()
+
+    def show() -> None:
+        while not stop.wait(every_s):
+            bar.set_postfix_str(" | ".join(job_status.current(claims, since)) or "")
+
+    thread = threading.Thread(target=show, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _load(
@@ -468,7 +536,7 @@ def _publish(args: argparse.Namespace) -> int:
     from kkl_bench.publish import publish
 
     results, damaged = _load(args)
-    written = publish(results, args.results, args.out)
+    written = publish(results, args.results, args.out, args.margin, args.force)
     print(f"wrote {len(written)} files to {args.out}/")
     return _status(args, damaged)
 
@@ -528,9 +596,12 @@ def _cost(args: argparse.Namespace) -> int:
         cache_dir=args.cache or default_cache_dir(),
     )
     out = args.out / cost.COST_FILE
-    rows = cost.measure(spec, out, args.rounds, args.threads, args.max_seconds)
+    rows = cost.measure(spec, out, args.rounds, args.threads, args.max_seconds, args.replace)
     print(leaderboard.measured_cost_table(rows))
-    print(f"wrote {out}")
+    kept = len(cost.read_costs(out)) - len(rows)
+    print(
+        f"wrote {len(rows)} rows (run {rows['run'].iloc[0]}) to {out}; {kept} rows of earlier runs kept"
+    )
     return 0
 
 
@@ -550,20 +621,24 @@ def _cache(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from kkl_bench.testing import run_checks
+    from kkl_bench.testing import describe, run_checks
 
-    failures = 0
-    for name, error in run_checks(args.estimator, system=args.system):
-        print(
-            f"{'PASS' if error is None else 'FAIL'} {name}"
-            + ("" if error is None else f": {error}")
-        )
+    variants.build(args.estimator)  # an unknown name is a usage error, not a failed check
+    checked = _names(systems, args.system)
+    failures = passes = 0
+    for system, name, error in run_checks(args.estimator, checked):
+        print(f"{'PASS' if error is None else 'FAIL'} {system} {name}", end="")
+        print("" if error is None else f": {describe(error)}")
         failures += error is not None
+        passes += error is None
+    print(f"{passes} passed, {failures} failed")
     return 1 if failures else 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.command_line = shlex.join(["kkl-bench", *argv])
     commands = {
         "list": lambda: _list(),
         "run": lambda: _run(args),
@@ -589,7 +664,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"kkl-bench: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("kkl-bench: interrupted; finished cells are saved", file=sys.stderr)
+        print("kkl-bench: interrupted", file=sys.stderr)
         return 130
 
 

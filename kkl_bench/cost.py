@@ -6,7 +6,14 @@ sessions, one or two jobs on the machine), so those times do not compare
 with one another. :func:`measure` times ``estimate`` again for every
 (estimator, system, task) of a :class:`~kkl_bench.harness.RunSpec` in one
 process, in turn, on the same test sets, with the trained models of the cache
-(fitted if missing), on ``threads`` threads, best of ``rounds``.
+(fitted if missing), on ``threads`` threads, best of ``rounds``. The EKF
+(:data:`REFERENCE`) is always timed beside them, so every row carries the
+reference's cost *from its own run*: a published ratio to the EKF never
+compares times of two runs.
+
+A measurement is merged into an existing file by (estimator, system, track,
+regime): the rows it timed replace their namesakes, every other row keeps its
+own run, commit and reference cost (``replace=True`` rewrites the file whole).
 
 One thread is the default: it is what each worker of ``kkl-bench run --jobs 2``
 has on two cores, and all the filters' Python loops use. The published cost
@@ -33,6 +40,10 @@ from kkl_bench.task import make_test_set
 
 COST_FILE = "cost.csv"
 """The measurement's file name in the leaderboard folder."""
+REFERENCE = "ekf"
+"""The estimator timed beside every measurement; rows compare with it."""
+KEY = ["estimator", "system", "track", "regime"]
+"""What identifies a row: a measurement replaces the stored rows of the keys it timed."""
 
 COLUMNS = [
     "estimator",
@@ -45,7 +56,11 @@ COLUMNS = [
     "threads",
     "seed",
     "git_commit",
+    "run",
+    "reference_us_per_trajectory_step",
 ]
+"""``run`` numbers the measurements merged into one file (1, 2, ...); the reference
+column is :data:`REFERENCE`'s cost on the same test set in the same run."""
 
 
 def fastest_round_robin(
@@ -88,19 +103,28 @@ def fastest_round_robin(
 
 
 def measure(
-    spec: RunSpec, out: Path, rounds: int = 3, threads: int = 1, max_seconds: float = 10.0
+    spec: RunSpec,
+    out: Path,
+    rounds: int = 3,
+    threads: int = 1,
+    max_seconds: float = 10.0,
+    replace: bool = False,
 ) -> pd.DataFrame:
-    """Time ``estimate`` of every estimator of ``spec`` on the test set of every task of
-    ``spec`` (:func:`fastest_round_robin`), and write one row per (estimator, system,
-    task) to ``out`` (CSV, :data:`COLUMNS`).
+    """Time ``estimate`` of every estimator of ``spec``, and of :data:`REFERENCE` beside
+    them, on the test set of every task of ``spec`` (:func:`fastest_round_robin`), and
+    merge one row per (estimator, system, task) into ``out`` (CSV, :data:`COLUMNS`).
 
-    Each estimator is fitted once per system with the first seed it runs with (from the
-    cache when it holds the model). ``out`` is rewritten after every round: an
-    interrupted run keeps what it measured. Returns the rows.
+    The reference's own rows enter ``out`` only if ``spec`` asks for it. Each estimator
+    is fitted once per system with the first seed it runs with (from the cache when it
+    holds the model). ``out`` is written after every round: an interrupted run keeps what
+    it measured. ``replace`` drops the rows stored before. Returns this run's rows.
     """
+    stored = None if replace else read_costs(out)
+    run = 1 if stored is None or stored.empty else int(stored["run"].max()) + 1
+    timed = list(dict.fromkeys([*spec.estimators, REFERENCE]))
     fitted, test_sets = {}, {}
     for name, system in tqdm(
-        [(name, system) for name in spec.estimators for system in spec.systems],
+        [(name, system) for name in timed for system in spec.systems],
         desc="loading fitted models",
         unit="model",
     ):
@@ -110,7 +134,7 @@ def measure(
             test_sets.setdefault(task, make_test_set(task, spec.profile.n_test).data)
     calls = {
         (name, task): functools.partial(timed_estimate, fitted[name, task.system], data)
-        for name in spec.estimators
+        for name in timed
         for task, data in test_sets.items()
     }
     with thread_limit(threads):
@@ -127,13 +151,18 @@ def measure(
                     "track": task.track,
                     "regime": task.regime,
                     "trajectories": test_sets[task].y.shape[0],
-                    "us_per_trajectory_step": 1e6 * seconds / test_sets[task].y[..., 0].size,
+                    "us_per_trajectory_step": _per_step(seconds, test_sets[task]),
                     "rounds": counts[name, task],
                     "threads": threads,
                     "seed": spec.seeds_for(name)[0],
                     "git_commit": commit,
+                    "run": run,
+                    "reference_us_per_trajectory_step": _per_step(
+                        best.get((REFERENCE, task), math.nan), test_sets[task]
+                    ),
                 }
                 for (name, task), seconds in best.items()
+                if name in spec.estimators
             ],
             columns=COLUMNS,
         )
@@ -141,25 +170,49 @@ def measure(
     def save(best: dict, counts: dict) -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
         partial = out.with_name(out.name + ".partial")
-        rows(best, counts).to_csv(partial, index=False, float_format="%.6g")
+        merge(stored, rows(best, counts)).to_csv(partial, index=False, float_format="%.6g")
         os.replace(partial, out)
 
     best, counts = fastest_round_robin(calls, rounds, threads, max_seconds, save)
     return rows(best, counts)
 
 
+def _per_step(seconds: float, data) -> float:
+    """µs per trajectory-step of a call that took ``seconds`` on ``data``."""
+    return 1e6 * seconds / data.y[..., 0].size
+
+
+def merge(stored: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
+    """``stored`` rows whose key (:data:`KEY`) ``new`` lacks, then ``new``'s rows."""
+    if stored is None or stored.empty:
+        return new.reset_index(drop=True)
+    timed = pd.MultiIndex.from_frame(new[KEY])
+    kept = stored[~pd.MultiIndex.from_frame(stored[KEY]).isin(timed)]
+    return pd.concat([kept, new], ignore_index=True)[COLUMNS]
+
+
 def read_costs(path: Path) -> pd.DataFrame | None:
     """The rows :func:`measure` wrote to ``path``, or None if there is no such file.
 
-    Raises ``ValueError`` naming the file and the missing columns if it is not one."""
+    A file written before measurements were merged (no ``run`` column) was one run: its
+    rows get run 1 and the reference's cost from its own :data:`REFERENCE` rows. Raises
+    ``ValueError`` naming the file and the missing columns if it is not a measurement.
+    """
     if not path.exists():
         return None
     costs = pd.read_csv(path)
-    missing = [column for column in COLUMNS if column not in costs.columns]
+    merged_since = ["run", "reference_us_per_trajectory_step"]
+    needed = COLUMNS if "run" in costs.columns else [c for c in COLUMNS if c not in merged_since]
+    missing = [column for column in needed if column not in costs.columns]
     if missing:
         raise ValueError(
             f"{path} is not a `kkl-bench cost` measurement: no column(s) {', '.join(missing)}"
         )
+    if "run" not in costs.columns:
+        reference = costs.loc[
+            costs["estimator"] == REFERENCE, [*KEY[1:], "us_per_trajectory_step"]
+        ].rename(columns={"us_per_trajectory_step": "reference_us_per_trajectory_step"})
+        costs = costs.assign(run=1).merge(reference, on=KEY[1:], how="left")
     return costs
 
 

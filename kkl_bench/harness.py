@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kkl_bench import variants
+from kkl_bench import status, variants
 from kkl_bench.cache import default_cache_dir
 from kkl_bench.devices import check_device
 from kkl_bench.estimator import Estimator, FitContext
@@ -45,6 +45,7 @@ from kkl_bench.results import (
     cell_path,
     check_writable,
     claim,
+    claim_path,
     move_aside,
     provenance,
     read_cell,
@@ -79,6 +80,9 @@ class RunSpec:
     tracks: tuple[str, ...] = (PAPER_TRACK,)
     device: str = "auto"
     """Where torch estimators train (:mod:`kkl_bench.devices`); resolved by each worker."""
+    command: str | None = None
+    """The command line that started the run (``kkl-bench run ...``), recorded in every
+    cell's provenance; None when the harness is called from Python."""
 
     def __post_init__(self) -> None:
         if not self.estimators:
@@ -250,7 +254,7 @@ def _cell(spec: RunSpec, name: str, params: dict, task: Task, seed: int, **field
         protocol=PROTOCOL_ID,
         test_set_fingerprint=test_set.fingerprint,
         stream_fingerprint=test_set.stream_fingerprint,
-        provenance=provenance(),
+        provenance={**provenance(), "command": spec.command},
         **fields,
     )
 
@@ -270,6 +274,7 @@ def run_system(
     estimator = variants.build(variants.split_logged(estimator_name)[0])
     tasks = list(tasks)
     start = time.perf_counter()
+    status.say("fitting")
     try:
         estimator.fit(fit_context_for_row(spec, estimator_name, system, tasks, seed))
     except Exception as error:
@@ -288,7 +293,8 @@ def run_system(
         return
     fit_time = time.perf_counter() - start
     report = estimator.fit_report()
-    for task in tasks:
+    for number, task in enumerate(tasks, 1):
+        status.say(f"scoring {task.track}/{task.regime} ({number}/{len(tasks)})")
         kept = None
         try:
             metrics, kept = score(estimator, make_test_set(task, spec.profile.n_test))
@@ -340,7 +346,14 @@ def run_job(spec: RunSpec, job: Job) -> JobOutcome:
     waits, then scores only the cells still missing.
     """
     provenance()  # the code's commit now, before a long fit: the checkout may move on meanwhile
-    with claim(spec.results_dir, job.estimator, job.system, spec.profile.name, job.seed):
+    lock = claim_path(spec.results_dir, job.estimator, job.system, spec.profile.name, job.seed)
+    with (
+        claim(spec.results_dir, job.estimator, job.system, spec.profile.name, job.seed),
+        status.reporting(
+            status.status_path(lock.parent, lock.stem),
+            f"{job.estimator} on {job.system}, seed {job.seed}",
+        ),
+    ):
         done = {task: _done(spec, job.estimator, task, job.seed) for task in job.tasks}
         todo = [task for task, cell in done.items() if cell is None]
         scored = list(run_system(spec, job.estimator, job.system, todo, job.seed)) if todo else []

@@ -32,7 +32,7 @@ from tabulate import tabulate
 from kkl_bench import variants
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.results import mean_and_std
-from kkl_bench.significance import compare, mark_column
+from kkl_bench.significance import MARGIN, compare, mark_column
 from kkl_bench.tracks import find_track
 
 FORMATS = ("markdown", "latex", "csv")
@@ -133,7 +133,9 @@ def check_not_mixed(results: pd.DataFrame) -> None:
         )
 
 
-def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFrame:
+def summary_table(
+    results: pd.DataFrame, with_paper: bool = False, margin: float = MARGIN
+) -> pd.DataFrame:
     """One row per (estimator, system, regime): the numbers every table shows.
 
     Columns: estimator, system, regime, status, n_seeds, n_test (per seed),
@@ -145,7 +147,7 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
     never settled; NaN and 0 for cells recorded without settling times), task,
     track, protocol, map quality, the steps and samples spent
     (``phase1_steps`` ...), ``mark`` (``best``, ``tied`` or empty, see
-    :mod:`kkl_bench.significance`) and ``rmse_trajectories`` (per seed, per
+    :mod:`kkl_bench.significance`; ``margin`` is its practical-equivalence margin) and ``rmse_trajectories`` (per seed, per
     trajectory; ``(n_seeds, n_test)`` nested lists, not written to CSV).
     """
     if "seed" not in results:
@@ -188,7 +190,7 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
             }
         )
     summary = pd.DataFrame(rows)
-    summary["mark"] = _marks(summary)
+    summary["mark"] = _marks(summary, margin)
     if with_paper:
         paper = paper_results().rename(columns={"rmse": "rmse_mean", "smape_percent": "smape_mean"})
         paper["estimator"] = PAPER_PREFIX + paper.pop("method")
@@ -199,7 +201,7 @@ def summary_table(results: pd.DataFrame, with_paper: bool = False) -> pd.DataFra
     return summary
 
 
-def _marks(summary: pd.DataFrame) -> pd.Series:
+def _marks(summary: pd.DataFrame, margin: float) -> pd.Series:
     """The significance mark of every row, decided column by column."""
     marks = pd.Series("", index=summary.index, dtype=object)
     for _, column in summary.groupby(["system", "regime"], sort=False):
@@ -207,7 +209,8 @@ def _marks(summary: pd.DataFrame) -> pd.Series:
         if scored.empty or len({len(t[0]) for t in scored["rmse_trajectories"]}) != 1:
             continue  # no entries, or different test sets: nothing to compare
         decided = mark_column(
-            {index: np.asarray(values) for index, values in scored["rmse_trajectories"].items()}
+            {index: np.asarray(values) for index, values in scored["rmse_trajectories"].items()},
+            margin,
         )
         for index, mark in decided.items():
             marks[index] = mark
@@ -428,17 +431,20 @@ def cost_table(summary: pd.DataFrame) -> str:
 def measured_cost_table(costs: pd.DataFrame) -> str:
     """Markdown table of a ``kkl-bench cost`` measurement (:mod:`kkl_bench.cost`): per
     estimator, the µs per trajectory-step on each system (mean over its tasks), the
-    largest over all cells, and how many times cheaper than the EKF of the same
-    measurement it is on average (where the EKF was timed)."""
-    per_system = costs.pivot_table(
-        index="estimator", columns="system", values="us_per_trajectory_step", aggfunc="mean"
-    )
+    largest over all cells, and how many times cheaper than the EKF it is on average:
+    per system, the mean of the EKF's costs timed in each row's own run over the mean of
+    the row's, averaged over the systems."""
+    means = costs.groupby(["estimator", "system"])[
+        ["us_per_trajectory_step", "reference_us_per_trajectory_step"]
+    ].mean()
+    per_system = means["us_per_trajectory_step"].unstack("system")
     systems = _in_paper_order(per_system.columns, SYSTEM_TITLES)
     table = per_system[systems].rename(columns=lambda name: SYSTEM_TITLES.get(name, name))
     table["largest cell"] = costs.groupby("estimator")["us_per_trajectory_step"].max()
-    if "ekf" in per_system.index:
-        ratios = per_system.loc["ekf"] / per_system
-        table["EKF / this (mean over systems)"] = ratios[systems].mean(axis=1)
+    ratios = (means["reference_us_per_trajectory_step"] / means["us_per_trajectory_step"]).unstack(
+        "system"
+    )
+    table["EKF / this (mean over systems)"] = ratios[systems].mean(axis=1)
     return tabulate(
         table.reset_index(),
         headers=["Estimator (µs / trajectory-step)", *table.columns],

@@ -20,13 +20,15 @@ Nothing is timed or dated here, so the same results give byte-identical files.
 from __future__ import annotations
 
 import html
+import json
 import math
+import os
 import re
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
+from tabulate import tabulate
 
 from kkl_bench import figures, findings, variants
 from kkl_bench.cost import COST_FILE, read_costs, with_measured_costs
@@ -52,25 +54,69 @@ from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators
 from kkl_bench.results import kept_estimates
 from kkl_bench.scaling import TRACK as SCALING_TRACK
+from kkl_bench.significance import MARGIN
+from kkl_bench.task import ProfileError, get_profile
 from kkl_bench.tracks import find_track
 
-RESULTS_LINK = "results"
-"""Where the published folder keeps its raw results (relative to it)."""
+MANIFEST = "publication.json"
+"""The file by which ``publish`` owns its folder: profile, results folder and files written."""
+NOT_RECORDED = "not recorded"
+"""What the Reproduce table says of cells written before runs recorded their command line."""
 
 
-def reproduce_commands(
-    profile: str, estimators: Iterable[str], seeds: Iterable[int], tracks: Iterable[str] = ()
-) -> str:
-    """The shell commands that make this folder, with relative paths only."""
-    names = " ".join(f"'{name}'" if "[" in name else name for name in estimators)
-    seed_list = " ".join(map(str, seeds))
-    track_list = " ".join(dict.fromkeys([PAPER_TRACK, *tracks]))
-    track_option = f" --track {track_list}" if track_list != PAPER_TRACK else ""
+class PublishRefused(ValueError):
+    """The output folder holds a board this publication must not overwrite."""
+
+
+def runs_frame(results: pd.DataFrame) -> pd.DataFrame:
+    """Per result row: the seeds, tracks and cells it has, the commits that wrote them and
+    the command lines its runs recorded (in the order first used), read from the cells."""
+    rows = []
+    for name, cells in results.groupby("estimator", sort=False):
+        cells = cells.assign(
+            command=[record.get("command") or NOT_RECORDED for record in cells["provenance"]],
+            commit=[str(record.get("git_commit")) for record in cells["provenance"]],
+            written=[str(record.get("written_at", "")) for record in cells["provenance"]],
+        ).sort_values("written")
+        rows.append(
+            {
+                "estimator": name,
+                "seeds": ", ".join(map(str, sorted(set(cells["seed"])))),
+                "tracks": ", ".join(_in_track_order(set(cells["track"]))),
+                "cells": len(cells),
+                "commits": ", ".join(sorted(set(cells["commit"]))),
+                "commands": list(dict.fromkeys(cells["command"])),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def _in_track_order(tracks: set[str]) -> list[str]:
     return (
-        f"kkl-bench run --estimator {names} \\\n"
-        f"    --profile {profile} --seed {seed_list}{track_option} --jobs 2 "
-        "--results leaderboard/results\n"
-        f"kkl-bench publish --results leaderboard/results --profile {profile} --out leaderboard"
+        [PAPER_TRACK, *sorted(tracks - {PAPER_TRACK})] if PAPER_TRACK in tracks else sorted(tracks)
+    )
+
+
+def _runs_markdown(runs: pd.DataFrame) -> str:
+    def commands(recorded: list[str]) -> str:
+        return "<br>".join(c if c == NOT_RECORDED else f"`{c}`" for c in recorded)
+
+    rows = [
+        [
+            f"`{row.estimator}`",
+            row.seeds,
+            row.tracks,
+            row.cells,
+            row.commits,
+            commands(row.commands),
+        ]
+        for row in runs.itertuples()
+    ]
+    return tabulate(
+        rows,
+        headers=["Row", "Seeds", "Tracks", "Cells", "Commits", "Command lines"],
+        tablefmt="github",
+        disable_numparse=True,
     )
 
 
@@ -85,7 +131,7 @@ def _provenance(results: pd.DataFrame) -> dict[str, list[str]]:
     return {key: sorted(values) for key, values in facts.items()}
 
 
-def _reading_guide(summary: pd.DataFrame) -> str:
+def _reading_guide(summary: pd.DataFrame, margin: float, failed: dict[str, list[int]]) -> str:
     ours = {e for e in summary["estimator"] if not e.startswith(PAPER_PREFIX)}
     installed = set(estimators.names())  # publishing needs no plugin; those installed say more
     bases = {e: variants.base_name(e) for e in ours}
@@ -103,23 +149,36 @@ def _reading_guide(summary: pd.DataFrame) -> str:
         if len(fewer)
         else ""
     )
+    failures = (
+        " Some cells failed (the estimator raised; `kkl-bench run` with the same arguments "
+        "retries them), and those rows show only the seeds that did not: "
+        + "; ".join(
+            f"`{name}`: seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))} failed"
+            for name, seeds in failed.items()
+        )
+        + "."
+        if failed
+        else ""
+    )
     return f"""Each cell reads `RMSE ± std (SMAPE %)`: for every training seed, the mean
 over the test trajectories of the steady-state RMSE; then the mean of those
 over the seeds, `±` their standard deviation over the seeds (sample standard
 deviation), and the mean SMAPE in parentheses. The `Seeds` column says how
 many seeds each row ran (up to {seeds}); the test trajectories are the same
 for every seed and estimator. Estimators that do not depend on the seed
-({", ".join(f"`{n}`" for n in single) or "none"}) were run once and show no spread.{short}
+({", ".join(f"`{n}`" for n in single) or "none"}) were run once and show no spread.{short}{failures}
 
 **Bold** marks the lowest RMSE of a column only where it beats every other
 entry by a paired hierarchical bootstrap: 4000 resamples that draw the test
 trajectories with replacement (the same draws for both estimators) and each
 estimator's seeds with replacement; the best entry is bold when the 5 %
-quantile of `RMSE(other) / RMSE(best)` is above 1 against every other entry.
-Otherwise the lowest entry and every entry not distinguishable from it in that
-way are in *italics* (tied). Entries with a diverged trajectory are never
-marked. The paper's rows (`paper:`) are its published numbers on its own test
-sets, shown for reference and never marked. `kkl_bench/significance.py` has
+quantile of `RMSE(other) / RMSE(best)` is above {1 + margin:g} against every other entry
+(a margin of practical equivalence of {100 * margin:g} %: a lead smaller than that is
+never a win, however many trajectories agree on it). Otherwise the lowest entry
+and every entry not distinguishable from it in that way are in *italics*
+(tied). Entries with a diverged trajectory are never marked. The paper's rows
+(`paper:`) are its published numbers on its own test sets, shown for
+reference and never marked. `kkl_bench/significance.py` has
 the exact procedure."""
 
 
@@ -141,9 +200,11 @@ class TrackTables:
     conditions: pd.DataFrame
 
     @classmethod
-    def of(cls, results: pd.DataFrame) -> TrackTables:
+    def of(cls, results: pd.DataFrame, margin: float = MARGIN) -> TrackTables:
         others = results[results["track"] != PAPER_TRACK]
-        summaries = {name: summary_table(cells) for name, cells in others.groupby("track")}
+        summaries = {
+            name: summary_table(cells, margin=margin) for name, cells in others.groupby("track")
+        }
         if not summaries:
             return cls({}, pd.DataFrame(), pd.DataFrame())
         return cls(summaries, track_summary(results), track_summary(results, by_condition=True))
@@ -295,33 +356,86 @@ largest cell, and the EKF's cost over each row's:
 """
 
 
-def _markdown(
-    summary: pd.DataFrame,
-    results: pd.DataFrame,
-    profile: str,
-    figure_names: list[str],
-    tables: TrackTables,
-    scaling_study: bool = False,
-    costs: pd.DataFrame | None = None,
-) -> str:
-    estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
+@dataclass(frozen=True)
+class Board:
+    """Everything one publication shows, read from the results once for both renderings.
+
+    summary: the paper track's :func:`summary_table` with the paper's rows; results: the
+    paper track's cells; runs: :func:`runs_frame` of every track's cells; failed: row ->
+    the seeds with a failed paper-track cell; results_link: the results folder relative
+    to the published one; smoke: the profile is a smoke test (no findings, no ratios to
+    the paper); margin: the marks' practical-equivalence margin.
+    """
+
+    summary: pd.DataFrame
+    results: pd.DataFrame
+    profile: str
+    figure_names: list[str]
+    tables: TrackTables
+    runs: pd.DataFrame
+    failed: dict[str, list[int]]
+    results_link: str
+    smoke: bool
+    margin: float
+    scaling_study: bool = False
+    costs: pd.DataFrame | None = None
+
+    @property
+    def guide(self) -> str:
+        return _reading_guide(self.summary, self.margin, self.failed)
+
+
+SMOKE_BANNER = (
+    "**A smoke test.** Profile `{profile}` runs the whole pipeline on tiny training "
+    "budgets and a few test trajectories: its numbers say nothing about the methods. "
+    "The paper's findings and the ratios to the paper's numbers are left out."
+)
+SMOKE_OMITTED = (
+    "Left out: profile `{profile}` is a smoke test, whose numbers say nothing about the "
+    "methods (publish a `standard` run for this section)."
+)
+RUNS_TEXT = (
+    "The runs behind these results, as their cells record them: per row, the seeds, "
+    "tracks and cells read here, the commits that wrote them and the command lines of "
+    f"their runs (`{NOT_RECORDED}`: cells written before `kkl-bench run` recorded its "
+    "command line)."
+)
+
+
+def failed_seeds(results: pd.DataFrame) -> dict[str, list[int]]:
+    """Row -> the seeds of ``results`` with a cell whose estimator failed (status error)."""
+    failed = results[results["status"] != "ok"]
+    return {name: sorted(set(cells["seed"])) for name, cells in failed.groupby("estimator")}
+
+
+def _markdown(board: Board) -> str:
+    summary, results, profile = board.summary, board.results, board.profile
     seeds = sorted(set(results["seed"]))
     protocol = ", ".join(sorted(set(results["protocol"])))
     provenance = "\n".join(
         f"| {key} | {', '.join(values)} |" for key, values in _provenance(results).items()
     )
     cells = "\n".join(
-        f"![{name}](figures/{name}.png)" for name in figure_names if name.startswith("trajectory-")
+        f"![{name}](figures/{name}.png)"
+        for name in board.figure_names
+        if name.startswith("trajectory-")
+    )
+    link = board.results_link
+    banner = f"\n{SMOKE_BANNER.format(profile=profile)}\n" if board.smoke else ""
+    omitted = SMOKE_OMITTED.format(profile=profile)
+    comparison = omitted if board.smoke else paper_comparison(summary)
+    tested = (
+        omitted if board.smoke else f"{FINDINGS_GUIDE}\n\n{findings.findings_markdown(summary)}"
     )
     return f"""# Leaderboard: profile `{profile}`, protocol {protocol}
-
-Written by `kkl-bench publish` from the results in [`{RESULTS_LINK}/`]({RESULTS_LINK}/)
+{banner}
+Written by `kkl-bench publish` from the results in [`{link}/`]({link}/)
 alone; every number here is in those files. [`index.html`](index.html) is the
 same leaderboard as a page (sortable, filterable; open it from disk).
 
 ## How to read it
 
-{_reading_guide(summary)}
+{board.guide}
 
 ## RMSE (SMAPE %) per system and input regime
 
@@ -332,13 +446,11 @@ Each of the paper's four methods against our row of the same name (`static_hyper
 is the paper's observer, gain 1; our guarded variant is `static_hyperkkl[guard=True]`).
 Below 1: ours is lower. The paper's numbers come from its own test sets.
 
-{paper_comparison(summary)}
+{comparison}
 
 ## The paper's findings, re-tested
 
-{FINDINGS_GUIDE}
-
-{findings.findings_markdown(summary)}
+{tested}
 
 ## Relative to the UKF
 
@@ -358,10 +470,10 @@ networks are cached and shared: Phase 1 counts in the fit time of the first
 KKL estimator that trained it, and a variant that changes only how trained
 networks are used online (such as `[guard=True]`) shows only the time to load
 them; a fit resumed from its checkpoints after an interruption shows only
-the time since it resumed. {_cost_source(costs)}
+the time since it resumed. {_cost_source(board.costs)}
 
 {cost_table(summary)}
-{_measured_cost_markdown(costs)}
+{_measured_cost_markdown(board.costs)}
 ![Estimation cost against RMSE](figures/cost-accuracy.png)
 
 ## Test trajectory 0 of every cell
@@ -371,7 +483,7 @@ below them the estimation-error norm on a log scale.
 
 {cells}
 
-{_tracks_markdown(tables, figure_names, scaling_study)}## Provenance
+{_tracks_markdown(board.tables, board.figure_names, board.scaling_study)}## Provenance
 
 | what | value |
 |---|---|
@@ -380,9 +492,9 @@ below them the estimation-error norm on a log scale.
 
 ## Reproduce
 
-```bash
-{reproduce_commands(profile, estimators, seeds, tables.summaries)}
-```
+{RUNS_TEXT}
+
+{_runs_markdown(board.runs)}
 """
 
 
@@ -392,7 +504,7 @@ table { border-collapse: collapse; font-size: 0.85rem; margin: 0.5rem 0 1.5rem; 
 th, td { border-bottom: 1px solid #ddd; padding: 0.25rem 0.5rem; text-align: right; }
 th { background: #f4f4f4; cursor: pointer; user-select: none; position: sticky; top: 0; }
 th.sorted-asc::after { content: " \\25B2"; } th.sorted-desc::after { content: " \\25BC"; }
-td.text, th.text { text-align: left; }
+td.text, th.text { text-align: left; white-space: pre-line; }
 td.best { font-weight: bold; } td.tied { font-style: italic; }
 .controls label { margin-right: 1rem; } img { max-width: 100%; }
 pre { background: #f4f4f4; padding: 0.6rem; overflow-x: auto; }
@@ -624,14 +736,20 @@ def _limit_html(summary: pd.DataFrame) -> str:
     return f"<h2>Distance from the Bayes limit</h2>\n{_html_table(frame, LIMIT_COLUMNS, 'limit')}\n"
 
 
-def _page(
-    summary: pd.DataFrame,
-    results: pd.DataFrame,
-    profile: str,
-    figure_names: list[str],
-    tables: TrackTables,
-    costs: pd.DataFrame | None = None,
-) -> str:
+RUN_COLUMNS = {
+    "estimator": "Row",
+    "seeds": "Seeds",
+    "tracks": "Tracks",
+    "cells": "Cells",
+    "commits": "Commits",
+    "commands": "Command lines",
+}
+"""The page's columns of :func:`runs_frame`."""
+
+
+def _page(board: Board) -> str:
+    summary, results, profile = board.summary, board.results, board.profile
+    figure_names, tables, costs = board.figure_names, board.tables, board.costs
     ours = _ours_with_relative(summary)
     paper = summary[summary["estimator"].str.startswith(PAPER_PREFIX)]
     paper_columns = {
@@ -662,11 +780,19 @@ def _page(
         f"<tr><td class='text'>{html.escape(k)}</td><td class='text'>{html.escape(', '.join(v))}</td></tr>"
         for k, v in _provenance(results).items()
     )
-    estimators = [e for e in dict.fromkeys(summary["estimator"]) if not e.startswith(PAPER_PREFIX)]
-    commands = reproduce_commands(
-        profile, estimators, sorted(set(results["seed"])), tables.summaries
+    runs = board.runs.assign(commands=board.runs["commands"].map("\n".join))
+    guide = _inline_markdown(html.escape(board.guide)).replace("\n\n", "</p><p>")
+    banner = (
+        f"<p>{_inline_markdown(html.escape(SMOKE_BANNER.format(profile=profile)))}</p>\n"
+        if board.smoke
+        else ""
     )
-    guide = _inline_markdown(html.escape(_reading_guide(summary))).replace("\n\n", "</p><p>")
+    tested = (
+        f"<h2>The paper's findings, re-tested</h2>\n"
+        f"<p>{_inline_markdown(html.escape(SMOKE_OMITTED.format(profile=profile)))}</p>\n"
+        if board.smoke
+        else _findings_html(summary)
+    )
     return f"""<!DOCTYPE html>
 <html lang="en">
 <head>
@@ -677,7 +803,7 @@ def _page(
 </head>
 <body>
 <h1>kkl-bench leaderboard: profile <code>{html.escape(profile)}</code></h1>
-<p>{guide}</p>
+{banner}<p>{guide}</p>
 <p>Click a column header to sort; choose a system or a regime to filter.</p>
 <div class="controls">
 <label>System <select id="filter-system"><option value="">all</option>{options}</select></label>
@@ -687,7 +813,7 @@ def _page(
 {_html_table(ours, RESULT_COLUMNS, "results", ours["mark"])}
 <h2>The paper's numbers</h2>
 {_html_table(paper, paper_columns, "paper")}
-{_findings_html(summary)}{_limit_html(summary)}<h2>Cost, training budget and map quality</h2>
+{tested}{_limit_html(summary)}<h2>Cost, training budget and map quality</h2>
 <p>{_inline_markdown(html.escape(_cost_source(costs)))}</p>
 {_html_table(cost_rows, {"estimator": "Estimator", "system": "System", **COST_COLUMNS}, "costs")}
 <h2>Figures</h2>
@@ -698,7 +824,8 @@ def _page(
 <h2>Provenance</h2>
 <table><tbody>{provenance}</tbody></table>
 <h2>Reproduce</h2>
-<pre>{html.escape(commands)}</pre>
+<p>{_inline_markdown(html.escape(RUNS_TEXT))}</p>
+{_html_table(runs, RUN_COLUMNS, "runs")}
 </body>
 </html>
 """
@@ -756,11 +883,21 @@ def _track_trajectories(track: str, results_dir: Path, profile: str, directory: 
     return names
 
 
-def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
+def publish(
+    results: pd.DataFrame,
+    results_dir: Path,
+    out: Path,
+    margin: float = MARGIN,
+    force: bool = False,
+) -> list[Path]:
     """Write the leaderboard folder of ``results`` (one profile's cells, of any tracks, from
     :func:`~kkl_bench.results.load_results` of ``results_dir``) into ``out``.
 
-    Returns the files written.
+    ``out`` is owned through its manifest (:data:`MANIFEST`): the files of the previous
+    publication that this one does not write are removed, and a folder holding a board of
+    another profile or of another results folder, or files no publication recorded, is
+    refused (:class:`PublishRefused`) unless ``force``. ``margin`` is the marks'
+    practical-equivalence margin. Returns the files written.
     """
     profiles = sorted(set(results["profile"]))
     if len(profiles) != 1:
@@ -772,29 +909,87 @@ def publish(results: pd.DataFrame, results_dir: Path, out: Path) -> list[Path]:
             "publishing needs the paper track's cells (every other track is read against "
             "them); run `kkl-bench run` with --track paper"
         )
-    summary = summary_table(paper, with_paper=True)
+    link = Path(os.path.relpath(Path(results_dir).resolve(), Path(out).resolve())).as_posix()
+    previous = owned_files(out, profile, link, force)
+    summary = summary_table(paper, with_paper=True, margin=margin)
     costs = read_costs(out / COST_FILE)
     if costs is not None:
         costs = costs[costs["track"] == PAPER_TRACK]
         summary = with_measured_costs(summary, costs)
-    tables = TrackTables.of(results)
+    tables = TrackTables.of(results, margin)
     out.mkdir(parents=True, exist_ok=True)
     figure_names = draw_figures(summary, results_dir, profile, out, tables.summaries)
+    board = Board(
+        summary=summary,
+        results=paper,
+        profile=profile,
+        figure_names=figure_names,
+        tables=tables,
+        runs=runs_frame(results),
+        failed=failed_seeds(paper),
+        results_link=link,
+        smoke=_is_smoke(profile),
+        margin=margin,
+        scaling_study=(out / "scaling.md").exists(),
+        costs=costs,
+    )
     written = {
-        out / "README.md": _markdown(
-            summary, paper, profile, figure_names, tables, (out / "scaling.md").exists(), costs
-        ),
-        out / f"{profile}.tex": render(summary, "latex"),
-        out / f"{profile}.csv": render(
+        "README.md": _markdown(board),
+        f"{profile}.tex": render(summary, "latex"),
+        f"{profile}.csv": render(
             summary[~summary["estimator"].str.startswith(PAPER_PREFIX)], "csv"
         ),
-        out / "index.html": _page(summary, paper, profile, figure_names, tables, costs),
+        "index.html": _page(board),
     }
     for name, track_summary_frame in tables.summaries.items():
-        written[out / f"{profile}-{name}.tex"] = render(
+        written[f"{profile}-{name}.tex"] = render(
             track_summary_frame, "latex", settling=_settling(name)
         )
-        written[out / f"{profile}-{name}.csv"] = render(track_summary_frame, "csv")
-    for path, text in written.items():
-        path.write_text(text)
-    return [*written, *sorted((out / "figures").iterdir())]
+        written[f"{profile}-{name}.csv"] = render(track_summary_frame, "csv")
+    for name, text in written.items():
+        (out / name).write_text(text)
+    files = sorted(
+        [*written, *(f"figures/{name}.{kind}" for name in figure_names for kind in ("png", "svg"))]
+    )
+    for stale in sorted(set(previous) - set(files)):
+        (out / stale).unlink(missing_ok=True)
+    manifest = {"profile": profile, "results": link, "files": files}
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
+    return [out / name for name in files]
+
+
+def _is_smoke(profile: str) -> bool:
+    """Whether ``profile`` is a smoke test (False for a profile not installed here)."""
+    try:
+        return get_profile(profile).smoke
+    except ProfileError:
+        return False
+
+
+def owned_files(out: Path, profile: str, link: str, force: bool) -> list[str]:
+    """The files (relative to ``out``) of the publication that ``out`` holds, after making
+    sure this one may replace it: one of ``profile`` from the results at ``link`` (relative
+    to ``out``). Raises :class:`PublishRefused` saying why, and what ``force`` would
+    replace, for a board of another profile or results folder, or for a folder with a
+    board no publication recorded."""
+    manifest_path = out / MANIFEST
+    if manifest_path.exists():
+        manifest = json.loads(manifest_path.read_text())
+        previous, others = list(manifest["files"]), []
+        if manifest["profile"] != profile:
+            others.append(f"profile {manifest['profile']!r} (this is {profile!r})")
+        if (out / manifest["results"]).resolve() != (out / link).resolve():
+            others.append(f"the results in {out / manifest['results']} (these are in {out / link})")
+    else:
+        previous = [name for name in ("README.md", "index.html") if (out / name).exists()]
+        others = ["no record of being published by `kkl-bench publish`"] if previous else []
+    if others and not force:
+        shown = ", ".join(previous[:4]) + (
+            f" and {len(previous) - 4} more" if len(previous) > 4 else ""
+        )
+        raise PublishRefused(
+            f"refusing to publish into {out}/: it holds a board of {' and of '.join(others)}. "
+            f"Publish to a new folder (--out), or pass --force to replace its {len(previous)} "
+            f"published file(s) ({shown})"
+        )
+    return previous

@@ -8,7 +8,9 @@ A plugin becomes known in one of two ways, which end in the same table:
   ``kkl_bench.regimes``, ``kkl_bench.estimators``), declared in the
   ``pyproject.toml`` of any installed distribution. Entry points are read on
   the first lookup and imported only when their name is asked for, so a
-  broken plugin never stops the others from loading.
+  broken plugin never stops the others from loading; asking for it raises
+  :class:`PluginLoadError` with the import error, and :meth:`Registry.broken`
+  names every such plugin.
 
 The built-in plugins are declared as entry points of this distribution,
 exactly as a third party declares its own.
@@ -16,10 +18,10 @@ exactly as a third party declares its own.
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import importlib.metadata
 import re
-import warnings
 from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
 
@@ -94,6 +96,16 @@ class Registry(Generic[T]):
         self._scan()
         return dict(self._failed)
 
+    def broken(self) -> dict[str, str]:
+        """Import every entry point not imported yet; those that fail: name -> reason.
+
+        For listing what is usable (``kkl-bench list``); lookups stay lazy."""
+        self._scan()
+        for name in list(self._lazy):
+            with contextlib.suppress(PluginLoadError):
+                self._load(name)
+        return self.failures()
+
     def __contains__(self, name: object) -> bool:
         return name in self.names()
 
@@ -125,7 +137,6 @@ class Registry(Generic[T]):
         except Exception as error:  # a plugin may fail in any way; report it, keep the rest
             reason = f"{entry_point.value}: {type(error).__name__}: {error}"
             self._failed[name] = reason
-            warnings.warn(f"{self.kind} plugin {name!r} failed to load ({reason})", stacklevel=3)
             raise PluginLoadError(f"{self.kind} {name!r} failed to load: {reason}") from error
         return self.register(name)(obj)
 

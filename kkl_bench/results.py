@@ -107,6 +107,12 @@ def cell_path(
     return folder / f"{regime}-seed{seed}.json"
 
 
+def claim_path(results_dir: Path, estimator: str, system: str, profile: str, seed: int) -> Path:
+    """The lock file of :func:`claim` (its job's status file sits beside it, see
+    :mod:`kkl_bench.status`)."""
+    return Path(results_dir) / ".claims" / profile / f"{estimator}--{system}--seed{seed}.lock"
+
+
 def claim(results_dir: Path, estimator: str, system: str, profile: str, seed: int) -> FileLock:
     """The lock a run holds while it fits ``estimator`` on ``system`` and scores its cells.
 
@@ -115,10 +121,9 @@ def claim(results_dir: Path, estimator: str, system: str, profile: str, seed: in
     ``filelock`` uses ``fcntl`` locks, which network file systems with lock
     support honour.
     """
-    claims = Path(results_dir) / ".claims"
-    path = claims / profile / f"{estimator}--{system}--seed{seed}.lock"
+    path = claim_path(results_dir, estimator, system, profile, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
-    (claims / ".gitignore").write_text("*\n")
+    (Path(results_dir) / ".claims" / ".gitignore").write_text("*\n")
     return FileLock(path)
 
 

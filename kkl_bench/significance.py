@@ -14,8 +14,11 @@ RMSEs, ``other / best``, exceeds 1 with 95 % confidence (one-sided, 5 %):
 * the ratio's 5 % quantile over the resamples must be above 1.
 
 The best entry is marked *best* only if it is distinguishable from every
-other entry; otherwise it and every entry not distinguishable from it are
-marked *tied*. Entries with a diverged trajectory (non-finite RMSE) are
+other entry *by more than a margin of practical equivalence*: the ratio's 5 %
+quantile must be above ``1 + margin`` (:data:`MARGIN`, 1 %), so that two entries
+that differ by rounding, or by less than anyone would care about, are never
+told apart however many trajectories agree on it. Otherwise the best entry
+and every entry not distinguishable from it in that way are marked *tied*. Entries with a diverged trajectory (non-finite RMSE) are
 never best and never tied; a column with fewer than two finite entries has
 no marks. Resampling uses a fixed seed, so the marks are
 reproducible.
@@ -30,6 +33,8 @@ import numpy as np
 N_RESAMPLES = 4000
 LEVEL = 0.05
 SEED = 20240601
+MARGIN = 0.01
+"""Practical-equivalence margin of the marks: a win must be by more than 1 %."""
 
 
 def resampled_means(
@@ -97,11 +102,15 @@ def compare(a: np.ndarray, b: np.ndarray, level: float = LEVEL) -> dict[str, flo
     }
 
 
-def mark_column(rmse: Mapping[str, np.ndarray]) -> dict[str, str]:
+def mark_column(rmse: Mapping[str, np.ndarray], margin: float = MARGIN) -> dict[str, str]:
     """``{"best"|"tied"|"": ...}`` for each entry of one column.
 
-    ``rmse`` maps an entry's name to its per-trajectory RMSE ``(n_seeds, n_trajectories)``.
+    ``rmse`` maps an entry's name to its per-trajectory RMSE ``(n_seeds, n_trajectories)``;
+    an entry is told apart from the best only if the lower bound of its ratio to the best
+    is above ``1 + margin``.
     """
+    if not margin >= 0:
+        raise ValueError(f"the practical-equivalence margin must be >= 0, got {margin!r}")
     finite = {name: np.asarray(v, float) for name, v in rmse.items() if np.isfinite(v).all()}
     marks = dict.fromkeys(rmse, "")
     if len(finite) < 2:
@@ -110,7 +119,7 @@ def mark_column(rmse: Mapping[str, np.ndarray]) -> dict[str, str]:
     tied = [
         name
         for name, values in finite.items()
-        if name != best and ratio_lower_bound(values, finite[best]) <= 1.0
+        if name != best and ratio_lower_bound(values, finite[best]) <= 1.0 + margin
     ]
     marks[best] = "tied" if tied else "best"
     for name in tied:

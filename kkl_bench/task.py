@@ -73,6 +73,9 @@ class Profile:
     description: str
     n_test: int
     budgets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    smoke: bool = False
+    """A smoke test of the pipeline: its numbers say nothing about the methods, and a
+    board of it says so and compares nothing with the paper."""
 
     def budget_for(self, estimator: str) -> dict[str, Any]:
         """The default budget updated with the estimator's own table, if any."""
@@ -103,11 +106,15 @@ def load_profiles(text: str | None = None) -> dict[str, Profile]:
         budgets = spec.get("budget", {})
         if not isinstance(budgets, dict) or not all(isinstance(b, dict) for b in budgets.values()):
             raise ProfileError(f"profile {name!r}: budget must hold one table per estimator")
+        smoke = spec.get("smoke", False)
+        if not isinstance(smoke, bool):
+            raise ProfileError(f"profile {name!r}: smoke must be true or false, got {smoke!r}")
         profiles[name] = Profile(
             name=name,
             description=str(spec.get("description", "")),
             n_test=n_test,
             budgets=MappingProxyType({key: MappingProxyType(b) for key, b in budgets.items()}),
+            smoke=smoke,
         )
     return profiles
 

@@ -9,8 +9,8 @@ tests; a plugin author runs them on theirs::
 or from the shell: ``kkl-bench check my_estimator``. Each check is small and
 named; :func:`estimator_checks` yields them for ``pytest.mark.parametrize``.
 
-The checks fit the estimator once on a system (default ``duffing``) with the
-``quick`` profile's budget, inside :func:`sealed_test_streams` (so reading a
+The checks fit the estimator once per system (by default :data:`CHECK_SYSTEMS`:
+a two-state and a three-state system) with the ``quick`` profile's budget, inside :func:`sealed_test_streams` (so reading a
 test set fails), and run it on short forced trajectories from a stream of
 its own. Every fit gets a fresh, empty cache directory, so the determinism
 check really trains twice. An estimator that declares ``uses_logged_data``
@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -219,26 +219,49 @@ def estimator_checks(
     return Conformance(estimator, system, budget).checks()
 
 
+CHECK_SYSTEMS = ("duffing", "lorenz")
+"""The systems :func:`check_estimator` and ``kkl-bench check`` use by default: one with two
+states, one with three (a plugin that assumes a state dimension fails one of them)."""
+
+
+def _systems(systems: str | Sequence[str]) -> tuple[str, ...]:
+    return (systems,) if isinstance(systems, str) else tuple(systems)
+
+
 def run_checks(
-    estimator: str | Estimator, system: str = "duffing", budget: dict[str, Any] | None = None
-) -> Iterator[tuple[str, BaseException | None]]:
-    """Run every check; yields ``(name, None)`` on success, ``(name, error)`` on failure."""
-    for name, check in estimator_checks(estimator, system, budget):
-        try:
-            check()
-        except Exception as error:
-            yield name, error
-        else:
-            yield name, None
+    estimator: str | Estimator,
+    systems: str | Sequence[str] = CHECK_SYSTEMS,
+    budget: dict[str, Any] | None = None,
+) -> Iterator[tuple[str, str, BaseException | None]]:
+    """Run every check on each of ``systems`` (one fit per system); yields ``(system, name,
+    None)`` on success, ``(system, name, error)`` on failure. A fit that raises fails
+    every check of its system with that error. An unknown estimator or system raises
+    before any check."""
+    for system in _systems(systems):
+        for name, check in estimator_checks(estimator, system, budget):
+            try:
+                check()
+            except Exception as error:
+                yield system, name, error
+            else:
+                yield system, name, None
+
+
+def describe(error: BaseException) -> str:
+    """``Type: message`` of a failed check, as FAIL lines show it."""
+    return f"{type(error).__name__}: {error}"
 
 
 def check_estimator(
-    estimator: str | Estimator, system: str = "duffing", budget: dict[str, Any] | None = None
+    estimator: str | Estimator,
+    systems: str | Sequence[str] = CHECK_SYSTEMS,
+    budget: dict[str, Any] | None = None,
 ) -> None:
-    """Run every check; raise one AssertionError listing all failures."""
+    """Run every check on each of ``systems``; raise one AssertionError listing all
+    failures."""
     failures = [
-        f"{name}: {type(error).__name__}: {error}"
-        for name, error in run_checks(estimator, system, budget)
+        f"{system}: {name}: {describe(error)}"
+        for system, name, error in run_checks(estimator, systems, budget)
         if error
     ]
     if failures:

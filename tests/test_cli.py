@@ -1,8 +1,12 @@
 """The command line: smoke runs, the leaderboard, and clear errors on bad input."""
 
+import numpy as np
 import pytest
 
 from kkl_bench.cli import main
+from kkl_bench.estimator import Estimator
+from kkl_bench.registry import estimators
+from kkl_bench.testing import check_estimator
 
 
 def test_run_then_leaderboard(tmp_path, capsys):
@@ -117,10 +121,39 @@ def test_bad_arguments_exit_with_usage(args, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_check_command_passes_for_a_builtin(capsys):
+def test_check_command_passes_for_a_builtin_on_a_two_and_a_three_state_system(capsys):
     assert main(["check", "ekf"]) == 0
     out = capsys.readouterr().out
-    assert "PASS check_causal" in out and "FAIL" not in out
+    assert "PASS duffing check_causal" in out and "PASS lorenz check_causal" in out
+    assert "FAIL" not in out and out.endswith("18 passed, 0 failed\n")
+
+
+class TwoStatesOnly(Estimator):
+    """Estimates the x0 box centre, but refuses systems with more than two states."""
+
+    def fit(self, context):
+        if context.system.n_x > 2:
+            raise NotImplementedError(f"only 2 states, got {context.system.n_x}")
+        return super().fit(context)
+
+    def estimate(self, t, y, u):
+        context = self.check_fitted()
+        centre = (context.x0_low + context.x0_high) / 2
+        return np.broadcast_to(centre, (len(y), len(t), 2)).copy()
+
+
+def test_check_fails_a_plugin_that_raises_on_three_state_systems_and_says_why(capsys):
+    estimators.register("two_states_only")(TwoStatesOnly)
+    try:
+        assert main(["check", "two_states_only"]) == 1
+        assert main(["check", "two_states_only", "--system", "vdp"]) == 0
+    finally:
+        del estimators._loaded["two_states_only"]
+    out = capsys.readouterr().out
+    assert "PASS duffing check_causal" in out
+    assert "FAIL lorenz check_causal: NotImplementedError: only 2 states, got 3" in out
+    with pytest.raises(AssertionError, match="lorenz: check_causal: NotImplementedError"):
+        check_estimator(TwoStatesOnly())
 
 
 def test_several_seeds_fit_learned_rows_per_seed_and_filters_once(tmp_path, capsys):

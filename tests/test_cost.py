@@ -83,24 +83,66 @@ def test_measured_costs_replace_the_cells_times_where_measured():
     assert summary["estimate_us_per_step"].tolist() == [300.0, 310.0, 400.0]
 
 
-def test_measured_cost_table_gives_means_largest_cell_and_ratio_to_the_ekf():
+def test_measured_cost_table_compares_each_row_with_the_ekf_of_its_own_run():
     costs = pd.DataFrame(
         {
             "estimator": ["ekf", "ekf", "fast", "fast"],
             "system": ["duffing", "vdp", "duffing", "vdp"],
             "us_per_trajectory_step": [100.0, 200.0, 2.0, 8.0],
+            # "fast" was timed in a later run, beside an EKF that took 400 and 800
+            "reference_us_per_trajectory_step": [100.0, 200.0, 400.0, 800.0],
         }
     )
     rows = [line.split("|")[1:-1] for line in measured_cost_table(costs).splitlines()[2:]]
     fast = [cell.strip() for cell in rows[1]]
-    # (100 / 2 + 200 / 8) / 2 = 37.5
-    assert fast == ["fast", "2", "8", "8", "37.5"]
+    # (400 / 2 + 800 / 8) / 2 = 150, not the stored EKF rows' (100 / 2 + 200 / 8) / 2
+    assert fast == ["fast", "2", "8", "8", "150"]
 
 
-def test_cost_command_writes_every_cell_and_refuses_other_files(tmp_path, capsys):
+def row(estimator, regime, us, run=1, reference=100.0):
+    return {
+        "estimator": estimator,
+        "system": "duffing",
+        "track": "paper",
+        "regime": regime,
+        "trajectories": 20,
+        "us_per_trajectory_step": us,
+        "rounds": 3,
+        "threads": 1,
+        "seed": 0,
+        "git_commit": f"commit{run}",
+        "run": run,
+        "reference_us_per_trajectory_step": reference,
+    }
+
+
+def test_a_measurement_replaces_only_the_rows_it_timed():
+    stored = pd.DataFrame(
+        [row("ekf", "zero", 100.0), row("ukf", "zero", 120.0), row("ukf", "square", 130.0)]
+    )
+    new = pd.DataFrame([row("ukf", "zero", 90.0, run=2, reference=80.0)])
+    merged = cost.merge(stored, new)
+    assert merged[["estimator", "regime", "us_per_trajectory_step", "run"]].values.tolist() == [
+        ["ekf", "zero", 100.0, 1],
+        ["ukf", "square", 130.0, 1],
+        ["ukf", "zero", 90.0, 2],
+    ]
+    assert cost.merge(None, new).equals(new)
+
+
+def test_a_file_from_before_merged_runs_reads_as_one_run_beside_its_own_ekf(tmp_path):
+    legacy = pd.DataFrame([row("ekf", "zero", 100.0), row("ukf", "zero", 120.0)])
+    legacy = legacy.drop(columns=["run", "reference_us_per_trajectory_step"])
+    legacy.to_csv(tmp_path / "cost.csv", index=False)
+    read = cost.read_costs(tmp_path / "cost.csv")
+    assert read["run"].tolist() == [1, 1]
+    assert read["reference_us_per_trajectory_step"].tolist() == [100.0, 100.0]
+
+
+def test_cost_command_merges_its_rows_and_times_the_ekf_beside_them(tmp_path, capsys):
     out = tmp_path / "board"
-    arguments = ["cost", "--estimator", "ekf", "ukf", "--system", "duffing", "--profile"]
-    assert main([*arguments, "quick", "--rounds", "1", "--out", str(out)]) == 0
+    arguments = ["cost", "--system", "duffing", "--profile", "quick", "--rounds", "1"]
+    assert main([*arguments, "--estimator", "ekf", "ukf", "--out", str(out)]) == 0
     costs = cost.read_costs(out / cost.COST_FILE)
     assert len(costs) == 2 * 4 and set(costs["regime"]) == {
         "zero",
@@ -109,8 +151,24 @@ def test_cost_command_writes_every_cell_and_refuses_other_files(tmp_path, capsys
         "square",
     }
     assert (costs["rounds"] == 1).all() and (costs["threads"] == 1).all()
-    assert (costs["us_per_trajectory_step"] > 0).all()
+    assert (costs["us_per_trajectory_step"] > 0).all() and (costs["run"] == 1).all()
+    ekf = costs[costs["estimator"] == "ekf"]
+    assert (ekf["reference_us_per_trajectory_step"] == ekf["us_per_trajectory_step"]).all()
     assert "EKF / this" in capsys.readouterr().out
+    # a second run of one estimator: its rows replaced, the EKF's rows kept from run 1,
+    # the EKF timed again beside it (not stored), and no EKF row of run 2
+    assert main([*arguments, "--estimator", "ukf", "--out", str(out)]) == 0
+    again = cost.read_costs(out / cost.COST_FILE)
+    assert len(again) == 8
+    assert again.groupby("estimator")["run"].unique().map(list).to_dict() == {
+        "ekf": [1],
+        "ukf": [2],
+    }
+    assert again[again["estimator"] == "ekf"].equals(ekf)
+    assert again["reference_us_per_trajectory_step"].notna().all()
+    assert "wrote 4 rows (run 2)" in capsys.readouterr().out
+    assert main([*arguments, "--estimator", "ukf", "--replace", "--out", str(out)]) == 0
+    assert set(cost.read_costs(out / cost.COST_FILE)["estimator"]) == {"ukf"}
     (tmp_path / "not-costs.csv").write_text("a,b\n1,2\n")
     with pytest.raises(ValueError, match=r"not-costs\.csv is not a `kkl-bench cost` measurement"):
         cost.read_costs(tmp_path / "not-costs.csv")

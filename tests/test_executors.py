@@ -118,7 +118,10 @@ def test_an_interrupted_run_resumes_with_nothing_lost_or_duplicated(tmp_path, si
     process = start_and_stop_part_way(tmp_path, sig)
     if sig == signal.SIGINT:
         assert process.returncode == 130
-        assert "interrupted; finished cells are saved" in process.stderr.read()
+        assert (
+            "interrupted; every finished cell is saved; run the same command again to resume"
+            in process.stderr.read()
+        )
     before = {path: path.read_bytes() for path in cell_files(tmp_path)}
     assert 4 <= len(before) < CELLS
     for content in before.values():

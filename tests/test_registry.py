@@ -3,6 +3,7 @@
 import importlib.metadata
 import sys
 import textwrap
+import warnings
 
 import pytest
 
@@ -58,15 +59,31 @@ def test_entry_point_plugins_load_lazily_and_a_broken_one_spares_the_rest(
     assert registry.names() == ["broken", "good"]
     assert "throwaway_plugin" not in sys.modules  # nothing imported yet
     assert registry.get("good").__name__ == "Good"
-    with (
-        pytest.warns(UserWarning, match="widget plugin 'broken' failed to load"),
-        pytest.raises(PluginLoadError, match="missing dependency xyz"),
-    ):
-        registry.get("broken")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the error says it once; no warning repeats it
+        with pytest.raises(PluginLoadError, match="missing dependency xyz"):
+            registry.get("broken")
     assert registry.names() == ["good"]
     assert "missing dependency xyz" in registry.failures()["broken"]
     with pytest.raises(PluginLoadError, match="failed to load"):  # reported again, not re-imported
         registry.get("broken")
+
+
+def test_broken_imports_every_plugin_and_names_the_ones_that_fail(plugin_package, monkeypatch):
+    group = "kkl_bench.test_kind"
+    monkeypatch.setattr(
+        registry_module.importlib.metadata,
+        "entry_points",
+        fake_entry_points(
+            importlib.metadata.EntryPoint("good", "throwaway_plugin:Good", group),
+            importlib.metadata.EntryPoint("broken", "broken_plugin:Thing", group),
+        ),
+    )
+    registry = Registry("widget", group)
+    broken = registry.broken()
+    assert list(broken) == ["broken"]
+    assert "RuntimeError: missing dependency xyz" in broken["broken"]
+    assert registry.names() == ["good"]
 
 
 def test_decorator_registers_and_refuses_silent_replacement():

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
+from kkl_bench import status
 from kkl_bench.kkl.cache import CheckpointCache
 
 RESUME_KIND = "kkl-resume"
@@ -217,6 +218,7 @@ def minimize(
             losses.append(loss.item())
             if step % 100 == 0:
                 bar.set_postfix(loss=f"{losses[-1]:.3g}")
+            status.step(description, step + 1, steps)
             if resume and ((step + 1) % resume.every == 0 or step + 1 == steps):
                 resume.save(checkpoint, step + 1, parameters, optimizer, schedule, losses)
     for spent in _LEDGERS.get():
