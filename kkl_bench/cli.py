@@ -444,6 +444,7 @@ def _showing_jobs(bar: tqdm, claims: Path, every_s: float = 1.0) -> Iterator[Non
     finally:
         stop.set()
         thread.join()
+        bar.set_postfix_str("")
 
 
 def _load(
@@ -504,6 +505,9 @@ def _leaderboard(args: argparse.Namespace) -> int:
     settling = get_track(args.track).settling
     results = _of_track(results, args.track)
     with_paper = args.with_paper and args.track == PAPER_TRACK
+    if args.format == "markdown":
+        smoke = args.profile in load_profiles() and get_profile(args.profile).smoke
+        print(leaderboard.caption(args.track, args.profile, smoke, settling))
     for label, cells in leaderboard.version_groups(results).items():
         if label:
             print(f"\n{label}\n" if args.format == "markdown" else f"# {label}")

@@ -39,7 +39,9 @@ class FitContext:
     system: the model (``f``, ``g``, ``h``, Jacobians, x0 box).
     dt: sampling step (s).
     n_samples: samples per test trajectory.
-    sigma_w, sigma_v: process and measurement noise standard deviations.
+    sigma_w: standard deviation of the process noise added to every state after each
+        sample's RK4 step (``docs/protocol.md`` section 1).
+    sigma_v: standard deviation of the measurement noise on ``y``.
     training: generator of training trajectories (never the test streams).
     seed: the run's seed.
     profile: name of the profile being run (``"quick"``, ``"standard"``).
@@ -68,10 +70,12 @@ class FitContext:
 
     @property
     def x0_low(self) -> np.ndarray:
+        """``system.x0_low``: the lower corner ``(n_x,)`` of the box initial states come from."""
         return self.system.x0_low
 
     @property
     def x0_high(self) -> np.ndarray:
+        """``system.x0_high``: the upper corner ``(n_x,)`` of that box."""
         return self.system.x0_high
 
 
@@ -86,16 +90,22 @@ class Estimator(ABC):
     ``__init__`` and store them unchanged under the same names (so
     :meth:`get_params` and :meth:`clone` work); state learned in ``fit`` ends
     in ``_``.
+
+    Attributes
+    ----------
+    name: the registry name, for messages (optional; the registry knows it).
+    uses_seed: whether the fitted estimator depends on the training seed (default
+        True). One that does not (a filter given the model) is run with one seed only,
+        however many are asked.
+    uses_logged_data: whether ``fit`` can use ``FitContext.logged_data`` (default False).
+        On the ``mismatch`` track such an estimator is fitted a second time per true
+        plant, with its logged data, and published as a row of its own
+        (``<name>+logged``).
     """
 
     name: ClassVar[str] = ""
     uses_seed: ClassVar[bool] = True
-    """Whether the fitted estimator depends on the training seed. One that does not
-    (a filter given the model) is run with one seed only, however many are asked."""
     uses_logged_data: ClassVar[bool] = False
-    """Whether ``fit`` can use ``FitContext.logged_data``. On the ``mismatch`` track such an
-    estimator is fitted a second time per true plant, with its logged data, and published
-    as a row of its own (``<name>+logged``)."""
 
     def fit(self, context: FitContext) -> Self:
         """Prepare for ``context.system``; the default only records the context."""

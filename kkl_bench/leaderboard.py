@@ -367,6 +367,19 @@ def render(
     return "\n\n".join(tables) + "\n"
 
 
+def caption(track: str, profile: str, smoke: bool, settling: bool = False) -> str:
+    """What a printed table is and how to read its cells (Markdown, one paragraph)."""
+    kind = " (a smoke test: its numbers say nothing about the methods)" if smoke else ""
+    settle = "; `settle (s)`: median settling time" if settling else ""
+    return (
+        f"Track `{track}`, profile `{profile}`{kind}. A cell reads `RMSE ± std (SMAPE %)`: "
+        "the steady-state RMSE, mean over test trajectories and then over the training "
+        "seeds (`Seeds`), ± its standard deviation over seeds, and the mean SMAPE in %; "
+        f"**bold**: lowest by a paired bootstrap with a {100 * MARGIN:g} % margin, *italics*: "
+        f"tied with the lowest{settle}.\n"
+    )
+
+
 def _latex_escape(text: str) -> str:
     for character in "&%$#_{}":
         text = text.replace(character, "\\" + character)

@@ -69,8 +69,9 @@ class PublishRefused(ValueError):
 
 
 def runs_frame(results: pd.DataFrame) -> pd.DataFrame:
-    """Per result row: the seeds, tracks and cells it has, the commits that wrote them and
-    the command lines its runs recorded (in the order first used), read from the cells."""
+    """Per result row: the seeds it ran on each track (``0, 1, 2 on paper; 0 on noise``),
+    its cells, the commits that wrote them and the command lines its runs recorded (in
+    the order first used), read from the cells."""
     rows = []
     for name, cells in results.groupby("estimator", sort=False):
         cells = cells.assign(
@@ -78,11 +79,16 @@ def runs_frame(results: pd.DataFrame) -> pd.DataFrame:
             commit=[str(record.get("git_commit")) for record in cells["provenance"]],
             written=[str(record.get("written_at", "")) for record in cells["provenance"]],
         ).sort_values("written")
+        seeds = cells.groupby("track")["seed"].agg(lambda s: ", ".join(map(str, sorted(set(s)))))
+        by_seeds: dict[str, list[str]] = {}
+        for track in _in_track_order(set(seeds.index)):
+            by_seeds.setdefault(seeds[track], []).append(track)
         rows.append(
             {
                 "estimator": name,
-                "seeds": ", ".join(map(str, sorted(set(cells["seed"])))),
-                "tracks": ", ".join(_in_track_order(set(cells["track"]))),
+                "seeds": "; ".join(
+                    f"{seed_list} on {', '.join(tracks)}" for seed_list, tracks in by_seeds.items()
+                ),
                 "cells": len(cells),
                 "commits": ", ".join(sorted(set(cells["commit"]))),
                 "commands": list(dict.fromkeys(cells["command"])),
@@ -105,7 +111,6 @@ def _runs_markdown(runs: pd.DataFrame) -> str:
         [
             f"`{row.estimator}`",
             row.seeds,
-            row.tracks,
             row.cells,
             row.commits,
             commands(row.commands),
@@ -114,7 +119,7 @@ def _runs_markdown(runs: pd.DataFrame) -> str:
     ]
     return tabulate(
         rows,
-        headers=["Row", "Seeds", "Tracks", "Cells", "Commits", "Command lines"],
+        headers=["Row", "Seeds on tracks", "Cells", "Commits", "Command lines"],
         tablefmt="github",
         disable_numparse=True,
     )
@@ -395,8 +400,8 @@ SMOKE_OMITTED = (
     "methods (publish a `standard` run for this section)."
 )
 RUNS_TEXT = (
-    "The runs behind these results, as their cells record them: per row, the seeds, "
-    "tracks and cells read here, the commits that wrote them and the command lines of "
+    "The runs behind these results, as their cells record them: per row, the seeds it ran "
+    "on each track, the cells read here, the commits that wrote them and the command lines of "
     f"their runs (`{NOT_RECORDED}`: cells written before `kkl-bench run` recorded its "
     "command line)."
 )
@@ -738,8 +743,7 @@ def _limit_html(summary: pd.DataFrame) -> str:
 
 RUN_COLUMNS = {
     "estimator": "Row",
-    "seeds": "Seeds",
-    "tracks": "Tracks",
+    "seeds": "Seeds on tracks",
     "cells": "Cells",
     "commits": "Commits",
     "commands": "Command lines",
@@ -975,20 +979,28 @@ def owned_files(out: Path, profile: str, link: str, force: bool) -> list[str]:
     manifest_path = out / MANIFEST
     if manifest_path.exists():
         manifest = json.loads(manifest_path.read_text())
-        previous, others = list(manifest["files"]), []
+        previous, reasons = list(manifest["files"]), []
         if manifest["profile"] != profile:
-            others.append(f"profile {manifest['profile']!r} (this is {profile!r})")
+            reasons.append(f"its board is of profile {manifest['profile']!r} (this is {profile!r})")
         if (out / manifest["results"]).resolve() != (out / link).resolve():
-            others.append(f"the results in {out / manifest['results']} (these are in {out / link})")
+            reasons.append(
+                f"its board was made from the results in {out / manifest['results']} (these "
+                f"are in {out / link})"
+            )
     else:
         previous = [name for name in ("README.md", "index.html") if (out / name).exists()]
-        others = ["no record of being published by `kkl-bench publish`"] if previous else []
-    if others and not force:
+        reasons = []
+        if previous:
+            reasons.append(
+                f"its {', '.join(previous)} were not written by `kkl-bench publish` (it has "
+                f"no {MANIFEST})"
+            )
+    if reasons and not force:
         shown = ", ".join(previous[:4]) + (
             f" and {len(previous) - 4} more" if len(previous) > 4 else ""
         )
         raise PublishRefused(
-            f"refusing to publish into {out}/: it holds a board of {' and of '.join(others)}. "
+            f"refusing to publish into {out}/: {'; '.join(reasons)}. "
             f"Publish to a new folder (--out), or pass --force to replace its {len(previous)} "
             f"published file(s) ({shown})"
         )

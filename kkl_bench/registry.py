@@ -102,8 +102,9 @@ class Registry(Generic[T]):
         For listing what is usable (``kkl-bench list``); lookups stay lazy."""
         self._scan()
         for name in list(self._lazy):
-            with contextlib.suppress(PluginLoadError):
-                self._load(name)
+            if name in self._lazy:  # importing one module may register others
+                with contextlib.suppress(PluginLoadError):
+                    self._load(name)
         return self.failures()
 
     def __contains__(self, name: object) -> bool:

@@ -31,7 +31,9 @@ def test_run_then_leaderboard(tmp_path, capsys):
     table = capsys.readouterr().out
     assert "| Estimator   | System   |   Fit time (s) |" in table
     assert "| Estimator   | Seeds   | Van der Pol Zero   | Van der Pol Sqr   |" in table
-    board, details = table.split("\n\n")
+    caption, board, details = table.split("\n\n")
+    assert caption.startswith("Track `paper`, profile `quick` (a smoke test: its numbers say")
+    assert "`RMSE ± std (SMAPE %)`" in caption and "1 % margin" in caption
     assert board.count("| ekf ") == 1 and details.count("| ekf ") == 1
     assert main(["leaderboard", "--results", results, "--format", "latex", "--with-paper"]) == 0
     latex = capsys.readouterr().out

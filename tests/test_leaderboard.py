@@ -141,6 +141,22 @@ def test_seed_spread_alone_can_make_a_paired_win_a_tie():
     assert mark_column({"a": steady, "b": worse, "c": np.array([[np.inf] * 20])})["c"] == ""
 
 
+def test_a_lead_within_the_margin_is_a_tie_however_consistent():
+    trajectories = np.linspace(0.1, 1.0, 20)[None]
+    # 1e-12 relative on every trajectory: a plain paired bootstrap would call it a win
+    assert ratio_lower_bound(trajectories * (1 + 1e-12), trajectories) > 1
+    assert mark_column({"a": trajectories, "b": trajectories * (1 + 1e-12)}) == {
+        "a": "tied",
+        "b": "tied",
+    }
+    # 0.5 % on every trajectory is within the default 1 % margin, 2 % is not
+    assert mark_column({"a": trajectories, "b": 1.005 * trajectories})["a"] == "tied"
+    assert mark_column({"a": trajectories, "b": 1.02 * trajectories}) == {"a": "best", "b": ""}
+    assert mark_column({"a": trajectories, "b": 1.005 * trajectories}, margin=0.0)["a"] == "best"
+    with pytest.raises(ValueError, match=r"margin must be >= 0, got -0\.1"):
+        mark_column({"a": trajectories}, margin=-0.1)
+
+
 def test_comparison_gives_the_ratio_its_interval_and_a_verdict():
     frame = results_frame(
         (

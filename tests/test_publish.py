@@ -4,6 +4,7 @@ that works in a real browser."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 from pathlib import Path
@@ -257,3 +258,75 @@ def test_a_cost_measurement_replaces_the_scoring_runs_times(results, tmp_path):
     page = (tmp_path / "index.html").read_text()
     assert "Estimation times come from one <code>kkl-bench cost</code> run" in page
     assert '(<a href="cost.csv"><code>cost.csv</code></a>, commit abc1234)' in page
+
+
+class FailsOnSeedOne(OffsetCentre):
+    """OffsetCentre, except that its fit raises for seed 1."""
+
+    def fit(self, context):
+        if context.seed == 1:
+            raise RuntimeError("no luck with seed 1")
+        return super().fit(context)
+
+
+def test_a_board_says_what_its_runs_were_and_what_it_is(tmp_path, capsys):
+    """A 1-seed, 2-track run read back: the Reproduce table states exactly that run, a smoke
+    profile says so and compares nothing with the paper, a failed seed is named."""
+    results, out = tmp_path / "results", tmp_path / "board"
+    run_ekf = ["run", "--estimator", "ekf", "--system", "vdp", "--regime", "zero"]
+    run_ekf += ["--track", "paper", "far-init", "--results", str(results)]
+    assert main(run_ekf) == 0
+    estimators.register("fails_on_seed_one")(FailsOnSeedOne)
+    try:
+        run_failing = ["run", "--estimator", "fails_on_seed_one", "--system", "vdp"]
+        run_failing += ["--regime", "zero", "--seed", "0", "1", "--results", str(results)]
+        assert main(run_failing) == 1
+    finally:
+        del estimators._loaded["fails_on_seed_one"]
+    assert main(["publish", "--results", str(results), "--out", str(out)]) == 0
+    readme = (out / "README.md").read_text()
+    reproduce = readme.split("## Reproduce")[1]
+    rows = {line.split("|")[1].strip(): line for line in reproduce.splitlines() if "| `" in line}
+    assert set(rows) == {"`ekf`", "`fails_on_seed_one`"}
+    ekf = [cell.strip() for cell in rows["`ekf`"].split("|")[1:-1]]
+    assert ekf[1:3] == ["0 on paper, far-init", "2"]
+    assert (
+        ekf[4]
+        == f"`kkl-bench run --estimator ekf --system vdp --regime zero --track paper far-init --results {results}`"
+    )
+    failing = [cell.strip() for cell in rows["`fails_on_seed_one`"].split("|")[1:-1]]
+    assert failing[1] == "0, 1 on paper"
+    assert "[`results/`](results/)" not in readme and "[`../results/`](../results/)" in readme
+    assert "`fails_on_seed_one`: seed 1 failed" in readme
+    assert readme.split("\n")[2].startswith("**A smoke test.** Profile `quick`")
+    for section in ("## Our RMSE over the paper's", "## The paper's findings, re-tested"):
+        body = readme.split(section)[1].split("\n## ")[0]
+        assert "Left out: profile `quick` is a smoke test" in body
+        assert "| Method" not in body and "Claim" not in body
+
+
+def test_publish_owns_its_folder_and_removes_what_it_no_longer_writes(results, tmp_path):
+    out = tmp_path / "board"
+    arguments = ["publish", "--results", str(results), "--profile", "quick", "--out", str(out)]
+    assert main(arguments) == 0
+    manifest = json.loads((out / "publication.json").read_text())
+    assert manifest["profile"] == "quick" and manifest["results"] == os.path.relpath(results, out)
+    assert "figures/relative-rmse-far-init.svg" in manifest["files"]
+    (out / "figures" / "mine.png").write_bytes(b"not published")  # not publish's: kept
+    # the same board again from fewer results: the far-init files go, nothing else
+    paper_only = tmp_path / "paper-only"
+    shutil.copytree(
+        results / "quick", paper_only / "quick", ignore=shutil.ignore_patterns("far-init")
+    )
+    moved = ["publish", "--results", str(paper_only), "--profile", "quick", "--out", str(out)]
+    assert main(moved) == 2  # another results folder: refused without --force
+    assert main([*moved, "--force"]) == 0
+    assert not (out / "figures" / "relative-rmse-far-init.svg").exists()
+    assert not (out / "quick-far-init.csv").exists()
+    assert (out / "figures" / "mine.png").exists() and (out / "quick.csv").exists()
+    # a folder with a board that no publication recorded is refused too
+    stranger = tmp_path / "stranger"
+    stranger.mkdir()
+    (stranger / "README.md").write_text("# someone's notes\n")
+    assert main([*arguments[:-1], str(stranger)]) == 2
+    assert (stranger / "README.md").read_text() == "# someone's notes\n"

@@ -38,6 +38,7 @@ class System(ABC):
     state_names: names of the state components, length ``n_x``.
     g: ``(n_x,)`` input direction.
     x0_low, x0_high: ``(n_x,)`` corners of the box initial states are drawn from.
+    n_y: number of measured outputs (default 1).
     """
 
     name: ClassVar[str]
@@ -49,6 +50,7 @@ class System(ABC):
 
     @property
     def n_x(self) -> int:
+        """Number of states, ``len(state_names)``."""
         return len(self.state_names)
 
     @property
