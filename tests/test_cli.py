@@ -253,3 +253,12 @@ def test_all_beside_variants_stands_for_every_registered_estimator():
     names = _names(estimators, ["all", "static_hyperkkl[guard=True]"])
     assert names == (*estimators.names(), "static_hyperkkl[guard=True]")
     assert _names(estimators, ["all"]) == _names(estimators, None) == tuple(estimators.names())
+
+
+def test_list_names_a_broken_plugin_once_with_its_import_error(monkeypatch, capsys):
+    reason = "their_package:Thing: ModuleNotFoundError: No module named 'lib'"
+    monkeypatch.setattr(estimators, "broken", lambda: {"my_plugin": reason})
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("my_plugin") == 1 and out.count("No module named") == 1
+    assert f"BROKEN estimator my_plugin (not usable): {reason}" in out

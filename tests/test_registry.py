@@ -43,9 +43,9 @@ def fake_entry_points(*points):
     return entry_points
 
 
-def test_entry_point_plugins_load_lazily_and_a_broken_one_spares_the_rest(
-    plugin_package, monkeypatch
-):
+@pytest.fixture
+def widgets(plugin_package, monkeypatch) -> Registry:
+    """A registry of two entry-point plugins: ``good`` and ``broken`` (raises on import)."""
     group = "kkl_bench.test_kind"
     monkeypatch.setattr(
         registry_module.importlib.metadata,
@@ -55,7 +55,11 @@ def test_entry_point_plugins_load_lazily_and_a_broken_one_spares_the_rest(
             importlib.metadata.EntryPoint("broken", "broken_plugin:Thing", group),
         ),
     )
-    registry = Registry("widget", group)
+    return Registry("widget", group)
+
+
+def test_entry_point_plugins_load_lazily_and_a_broken_one_spares_the_rest(widgets):
+    registry = widgets
     assert registry.names() == ["broken", "good"]
     assert "throwaway_plugin" not in sys.modules  # nothing imported yet
     assert registry.get("good").__name__ == "Good"
@@ -69,17 +73,8 @@ def test_entry_point_plugins_load_lazily_and_a_broken_one_spares_the_rest(
         registry.get("broken")
 
 
-def test_broken_imports_every_plugin_and_names_the_ones_that_fail(plugin_package, monkeypatch):
-    group = "kkl_bench.test_kind"
-    monkeypatch.setattr(
-        registry_module.importlib.metadata,
-        "entry_points",
-        fake_entry_points(
-            importlib.metadata.EntryPoint("good", "throwaway_plugin:Good", group),
-            importlib.metadata.EntryPoint("broken", "broken_plugin:Thing", group),
-        ),
-    )
-    registry = Registry("widget", group)
+def test_broken_imports_every_plugin_and_names_the_ones_that_fail(widgets):
+    registry = widgets
     broken = registry.broken()
     assert list(broken) == ["broken"]
     assert "RuntimeError: missing dependency xyz" in broken["broken"]
