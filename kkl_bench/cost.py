@@ -34,8 +34,9 @@ from tqdm import tqdm
 
 from kkl_bench import variants
 from kkl_bench.executors import thread_limit
-from kkl_bench.harness import RunSpec, make_fit_context, timed_estimate, warm_up
 from kkl_bench.results import provenance
+from kkl_bench.scoring import timed_estimate, warm_up
+from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.task import make_test_set
 
 COST_FILE = "cost.csv"

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kkl_bench.leaderboard import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, task_order
 from kkl_bench.results import KeptEstimate
+from kkl_bench.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, task_order
 
 REFERENCE = "ukf"
 """The estimator the heat map divides by."""
@@ -161,8 +161,18 @@ def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
     return figure
 
 
+OFF_SCALE = 100.0
+"""A panel's RMSE axis reaches at most this many times its median entry; entries beyond
+(a diverging row) are drawn at the edge with their value written."""
+
+
 def cost_accuracy_figure(summary: pd.DataFrame):
-    """Estimation cost (µs per trajectory-step) against mean RMSE over regimes, per system."""
+    """Estimation cost (µs per trajectory-step) against mean RMSE over regimes, per system.
+
+    An entry whose RMSE is more than :data:`OFF_SCALE` times the panel's median entry is
+    drawn at the panel's top edge (a triangle) with its value written, so that one
+    diverging row does not flatten the others.
+    """
     plt = pyplot()
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
     systems = [s for s in SYSTEM_TITLES if s in set(ours["system"])]
@@ -182,15 +192,28 @@ def cost_accuracy_figure(summary: pd.DataFrame):
             .groupby("estimator")[["estimate_us_per_step", "rmse_mean"]]
             .mean()
         )
+        rows = rows[np.isfinite(rows).all(axis=1)]
+        edge = OFF_SCALE * float(rows["rmse_mean"].median()) if len(rows) else math.inf
         for i, name in enumerate(names):
-            if name in rows.index and np.isfinite(rows.loc[name]).all():
-                axis.loglog(
-                    *rows.loc[name],
-                    linestyle="none",
-                    marker=markers[i % len(markers)],
+            if name not in rows.index:
+                continue
+            cost, rmse = rows.loc[name]
+            style = {"marker": markers[i % len(markers)], "color": colors[name], "label": name}
+            if rmse > edge:
+                axis.loglog(cost, edge, linestyle="none", **(style | {"marker": "^"}))
+                axis.annotate(
+                    f"{name}: {rmse:.2g}",
+                    (cost, edge),
+                    xytext=(0, -10),
+                    textcoords="offset points",
+                    ha="center",
+                    fontsize=6,
                     color=colors[name],
-                    label=name,
                 )
+            else:
+                axis.loglog(cost, rmse, linestyle="none", **style)
+        if len(rows) and rows["rmse_mean"].max() > edge:
+            axis.set_ylim(top=edge * 1.5)
         axis.set_title(SYSTEM_TITLES[system])
         axis.set_xlabel("estimation cost (µs / trajectory-step)")
         axis.grid(alpha=0.3, which="both")

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from kkl_bench.leaderboard import comparison_cells, comparison_frame
+from kkl_bench.comparisons import comparison_frame
 
 OSCILLATORS_AND_ROSSLER = ("duffing", "vdp", "rossler")
 PAPER_SYSTEMS = (*OSCILLATORS_AND_ROSSLER, "lorenz")
@@ -116,23 +116,3 @@ def tested(
         if claims:
             found.append((index, finding, [(c, claim_frame(summary, c)) for c in claims]))
     return found
-
-
-def findings_markdown(summary: pd.DataFrame) -> str:
-    """One subsection per finding: the paper's words, and per claim its cells' ratios,
-    intervals and outcomes with their tally. Claims without results are left out."""
-    sections = []
-    for _, finding, claims in tested(summary):
-        parts = [f'### {finding.title}\n\nThe paper: "{finding.paper}".']
-        for claim, frame in claims:
-            rows = "\n".join(
-                "| " + " | ".join(cells) + " |"
-                for cells in comparison_cells(frame, frame["outcome"])
-            )
-            parts.append(
-                f"`{claim.lower}` lower than `{claim.higher}`: **{tally(frame)}**.\n\n"
-                f"| Cell | `{claim.lower}` | `{claim.higher}` | ratio | 90 % interval | "
-                f"claim |\n|---|---|---|---|---|---|\n{rows}"
-            )
-        sections.append("\n\n".join(parts))
-    return "\n\n".join(sections)

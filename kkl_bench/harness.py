@@ -23,25 +23,14 @@ import traceback
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
-
-import numpy as np
 
 from kkl_bench import status, variants
-from kkl_bench.cache import default_cache_dir
-from kkl_bench.devices import check_device
-from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import execute
-from kkl_bench.plants import logged_data
-from kkl_bench.protocol import DT, N_SAMPLES, PROTOCOL_ID, SIGMA_V, SIGMA_W
-from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, settling_time, smape
-from kkl_bench.protocol.simulate import Trajectories
-from kkl_bench.protocol.streams import PAPER_TRACK
-from kkl_bench.registry import estimators, systems
+from kkl_bench.protocol import PROTOCOL_ID
+from kkl_bench.registry import estimators
 from kkl_bench.results import (
     CellResult,
     DamagedCellError,
-    KeptEstimate,
     cell_path,
     check_writable,
     claim,
@@ -51,93 +40,10 @@ from kkl_bench.results import (
     read_cell,
     write_cell,
 )
-from kkl_bench.task import Profile, Task, TestSet, make_test_set, stream_fingerprint
-from kkl_bench.tracks import Plant, TrackError, get_track
-from kkl_bench.training import TrainingData
-
-WARM_UP_STEPS = 20
-"""Samples of one trajectory an estimator runs on, untimed, before it is timed."""
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """What to run: the grid, the profile, the training seeds and where results go.
-
-    ``estimators`` are registered names or variants of them
-    (``static_hyperkkl[guard=True]``, see :mod:`kkl_bench.variants`); they are
-    stored in their canonical spelling. ``regimes`` are task names of the
-    ``tracks`` (each must belong to at least one), or None for all of them.
-    """
-
-    estimators: tuple[str, ...]
-    systems: tuple[str, ...]
-    regimes: tuple[str, ...] | None
-    profile: Profile
-    seeds: tuple[int, ...] = (0,)
-    results_dir: Path = Path("results")
-    cache_dir: Path = field(default_factory=default_cache_dir)
-    force: bool = False
-    tracks: tuple[str, ...] = (PAPER_TRACK,)
-    device: str = "auto"
-    """Where torch estimators train (:mod:`kkl_bench.devices`); resolved by each worker."""
-    command: str | None = None
-    """The command line that started the run (``kkl-bench run ...``), recorded in every
-    cell's provenance; None when the harness is called from Python."""
-
-    def __post_init__(self) -> None:
-        if not self.estimators:
-            raise ValueError("no estimators selected")
-        if not self.systems:
-            raise ValueError("no systems selected")
-        for name in self.systems:
-            if name not in systems:
-                systems.get(name)  # raises the error listing the valid names
-        if not self.tracks:
-            raise ValueError("no tracks selected")
-        tracks = [get_track(name) for name in self.tracks]
-        if self.regimes is not None:
-            if not self.regimes:
-                raise ValueError("no regimes selected")
-            names = {name for track in tracks for name in track.task_names()}
-            for regime in self.regimes:
-                if regime not in names:
-                    raise TrackError(
-                        f"unknown regime {regime!r} for track(s) {', '.join(self.tracks)}; "
-                        f"valid regimes: {', '.join(sorted(names))}"
-                    )
-        if not self.tasks():
-            raise ValueError(
-                f"track(s) {', '.join(self.tracks)} have no task for system(s) "
-                f"{', '.join(self.systems)}"
-            )
-        check_device(self.device)
-        if not self.seeds:
-            raise ValueError("no seeds selected")
-        if any(seed < 0 for seed in self.seeds):
-            raise ValueError(f"seeds must be non-negative integers, got {list(self.seeds)}")
-        canonical = tuple(dict.fromkeys(variants.canonical(name) for name in self.estimators))
-        object.__setattr__(self, "estimators", canonical)
-        object.__setattr__(self, "seeds", tuple(dict.fromkeys(self.seeds)))
-        object.__setattr__(self, "tracks", tuple(dict.fromkeys(self.tracks)))
-
-    def tasks(self, system: str | None = None) -> list[Task]:
-        """The selected tasks (of ``system``, or of every selected system), track by track."""
-        selected = []
-        for track in map(get_track, self.tracks):
-            for name in self.systems if system is None else (system,):
-                if name not in track.systems:
-                    continue
-                selected += [
-                    Task(name, task, track.version, track.name)
-                    for task in track.task_names()
-                    if self.regimes is None or task in self.regimes
-                ]
-        return selected
-
-    def seeds_for(self, estimator: str) -> tuple[int, ...]:
-        """The seeds ``estimator`` runs with: all, or the first if it ignores the seed."""
-        uses_seed = estimators.get(variants.base_name(estimator)).uses_seed
-        return self.seeds if uses_seed else self.seeds[:1]
+from kkl_bench.scoring import score
+from kkl_bench.spec import RunSpec, fit_context_for_row
+from kkl_bench.task import Task, make_test_set, stream_fingerprint
+from kkl_bench.tracks import Plant
 
 
 @dataclass
@@ -151,91 +57,6 @@ class RunSummary:
     @property
     def ok(self) -> bool:
         return not self.failed
-
-
-def make_fit_context(
-    spec: RunSpec, estimator: str, system: str, seed: int, logged_data: Trajectories | None = None
-) -> FitContext:
-    """The context ``estimator`` (a name or variant) is fitted with for ``system`` and ``seed``
-    (with ``logged_data``, the trajectories logged on a true plant, if given)."""
-    model = systems.get(system)()
-    return FitContext(
-        system=model,
-        dt=DT,
-        n_samples=N_SAMPLES,
-        sigma_w=SIGMA_W,
-        sigma_v=SIGMA_V,
-        training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed),
-        seed=seed,
-        profile=spec.profile.name,
-        budget=spec.profile.budget_for(variants.base_name(estimator)),
-        cache_dir=Path(spec.cache_dir),
-        logged_data=logged_data,
-        device=spec.device,
-    )
-
-
-def plant_of(tasks: Iterable[Task]) -> tuple[str, Plant]:
-    """The one ``(track, plant)`` that ``tasks`` share (the tasks of a ``+logged`` fit)."""
-    plants = {(task.track, task.definition().plant) for task in tasks}
-    if len(plants) != 1:
-        raise ValueError(f"tasks of {len(plants)} different plants in one fit with logged data")
-    return plants.pop()
-
-
-def fit_context_for_row(
-    spec: RunSpec, row: str, system: str, tasks: Iterable[Task], seed: int
-) -> FitContext:
-    """The fit context of result row ``row``: an estimator (variant), or ``<name>+logged``,
-    which also receives the data logged on the plant of ``tasks``."""
-    name, with_logged = variants.split_logged(row)
-    if not with_logged:
-        return make_fit_context(spec, name, system, seed)
-    track, plant = plant_of(tasks)
-    logged = logged_data(system, plant, track, SIGMA_W, SIGMA_V)
-    return make_fit_context(spec, name, system, seed, logged)
-
-
-def warm_up(estimator: Estimator, data: Trajectories) -> None:
-    """Run ``estimator`` untimed on the first :data:`WARM_UP_STEPS` samples of the first
-    trajectory of ``data`` (first-call costs: lazy imports, allocator growth)."""
-    estimator.estimate(
-        data.t[:WARM_UP_STEPS], data.y[:1, :WARM_UP_STEPS].copy(), data.u[:1, :WARM_UP_STEPS].copy()
-    )
-
-
-def timed_estimate(estimator: Estimator, data: Trajectories) -> tuple[np.ndarray, float]:
-    """``estimator``'s estimate ``(batch, steps, n_x)`` on copies of ``data`` and its wall
-    time (s)."""
-    start = time.perf_counter()
-    x_hat = np.asarray(estimator.estimate(data.t.copy(), data.y.copy(), data.u.copy()), dtype=float)
-    return x_hat, time.perf_counter() - start
-
-
-def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
-    """Run ``estimator`` on ``test_set`` and compute the protocol's metrics.
-
-    Returns the metric and timing fields of a :class:`CellResult` and the
-    truth and estimate of the first test trajectory. Raises ``ValueError`` if
-    the estimate has the wrong shape.
-    """
-    data = test_set.data
-    dt = float(data.t[1] - data.t[0])
-    warm_up(estimator, data)
-    x_hat, elapsed = timed_estimate(estimator, data)
-    if x_hat.shape != data.x.shape:
-        raise ValueError(
-            f"estimate returned shape {x_hat.shape}; expected {data.x.shape} (batch, steps, n_x)"
-        )
-    metrics = {
-        "rmse": rmse(data.x, x_hat).tolist(),
-        "smape": smape(data.x, x_hat).tolist(),
-        "nrmse": nrmse(data.x, x_hat, test_set.state_scale).tolist(),
-        "per_state_rmse": per_state_rmse(data.x, x_hat).tolist(),
-        "settling_time_s": settling_time(data.x, x_hat, test_set.state_scale, dt).tolist(),
-        "estimate_us_per_step": 1e6 * elapsed / (x_hat.shape[0] * x_hat.shape[1]),
-    }
-    return metrics, KeptEstimate(t=data.t, x=data.x[0], x_hat=x_hat[0])
 
 
 def _cell(spec: RunSpec, name: str, params: dict, task: Task, seed: int, **fields) -> CellResult:

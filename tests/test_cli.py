@@ -247,12 +247,12 @@ def test_leaderboard_of_a_track_not_run_says_how_to_run_it(tmp_path, capsys):
 
 
 def test_all_beside_variants_stands_for_every_registered_estimator():
-    from kkl_bench.cli import _names
+    from kkl_bench.cli.common import names
     from kkl_bench.registry import estimators
 
-    names = _names(estimators, ["all", "static_hyperkkl[guard=True]"])
-    assert names == (*estimators.names(), "static_hyperkkl[guard=True]")
-    assert _names(estimators, ["all"]) == _names(estimators, None) == tuple(estimators.names())
+    expanded = names(estimators, ["all", "static_hyperkkl[guard=True]"])
+    assert expanded == (*estimators.names(), "static_hyperkkl[guard=True]")
+    assert names(estimators, ["all"]) == names(estimators, None) == tuple(estimators.names())
 
 
 def test_list_names_a_broken_plugin_once_with_its_import_error(monkeypatch, capsys):

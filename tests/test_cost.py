@@ -8,6 +8,7 @@ import pytest
 from kkl_bench import cost
 from kkl_bench.cli import main
 from kkl_bench.leaderboard import measured_cost_table
+from kkl_bench.report.markdown import table
 
 
 class FakeClock:
@@ -93,7 +94,7 @@ def test_measured_cost_table_compares_each_row_with_the_ekf_of_its_own_run():
             "reference_us_per_trajectory_step": [100.0, 200.0, 400.0, 800.0],
         }
     )
-    rows = [line.split("|")[1:-1] for line in measured_cost_table(costs).splitlines()[2:]]
+    rows = [line.split("|")[1:-1] for line in table(measured_cost_table(costs)).splitlines()[2:]]
     fast = [cell.strip() for cell in rows[1]]
     # (400 / 2 + 800 / 8) / 2 = 150, not the stored EKF rows' (100 / 2 + 200 / 8) / 2
     assert fast == ["fast", "2", "8", "8", "150"]

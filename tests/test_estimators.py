@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from kkl_bench.estimator import Estimator, NotFittedError
-from kkl_bench.harness import RunSpec, make_fit_context, score
 from kkl_bench.kkl.inputs import MixtureFamily
 from kkl_bench.registry import estimators
+from kkl_bench.scoring import score
+from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.task import Task, get_profile, make_test_set
 from kkl_bench.testing import Conformance, check_estimator
 from kkl_bench.tracks import get_track

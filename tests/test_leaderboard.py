@@ -6,16 +6,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench.leaderboard import (
-    comparison_table,
-    limit_frame,
-    paper_results,
-    render,
-    render_track_summary,
-    summary_table,
-    track_summary,
-)
+from kkl_bench import comparisons
+from kkl_bench.comparisons import limit_frame
+from kkl_bench.leaderboard import render, track_summary_table
+from kkl_bench.report.markdown import table
 from kkl_bench.significance import mark_column, ratio_lower_bound
+from kkl_bench.summary import paper_results, summary_table, track_summary
 
 
 def results_frame(entries=(("good", [0.1, 0.3]), ("bad", [1.0, 3.0]), ("broken", [0.1, math.inf]))):
@@ -271,3 +267,11 @@ def test_limit_frame_divides_by_the_particle_filter_and_names_the_best_learned_r
         }
     ]
     assert limit_frame(summary[summary["estimator"] != "particle_filter"]).empty
+
+
+def comparison_table(summary, a, b):
+    return table(comparisons.comparison_table(summary, a, b))
+
+
+def render_track_summary(frame, column="track"):
+    return table(track_summary_table(frame, column))

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from kkl_bench.cost import COST_FILE, read_costs
-from kkl_bench.publish import MANIFEST
+from kkl_bench.report.publish import MANIFEST
 
 pytest.importorskip("matplotlib")
 

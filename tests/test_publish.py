@@ -162,7 +162,9 @@ def check_rmse_cell(cell: str, seeds: str, records: list[dict] | None) -> int:
     return 1
 
 
-def test_the_page_sorts_and_filters_in_a_real_browser(published, tmp_path):
+def test_the_page_leads_with_the_board_switches_tracks_sorts_and_filters_in_a_browser(
+    published, tmp_path
+):
     webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed")
     browser = shutil.which("chromium") or shutil.which("chromium-browser")
     driver_path = shutil.which("chromedriver")
@@ -195,11 +197,24 @@ def test_the_page_sorts_and_filters_in_a_real_browser(published, tmp_path):
         errors = [entry for entry in driver.get_log("browser") if entry["level"] == "SEVERE"]
         assert errors == []
         text = driver.find_element(By.TAG_NAME, "body").text
-        assert "**" not in text and "`" not in text  # the guide's Markdown is rendered
+        assert "**" not in text and "`" not in text  # the Markdown is rendered
+
+        def visible_tables():
+            return [t for t in driver.find_elements(By.TAG_NAME, "table") if t.is_displayed()]
+
+        # the paper track's panel leads with its table in the paper's layout, coloured
+        first = visible_tables()[0]
+        assert first.get_attribute("id") == "board-paper-0"
+        assert first.find_element(By.CSS_SELECTOR, "thead th").text == "Estimator"
+        assert "background" in first.find_element(
+            By.CSS_SELECTOR, "tbody td:nth-child(3)"
+        ).get_attribute("style")
+        assert not driver.find_element(By.ID, "board-far-init-0").is_displayed()
+        driver.find_element(By.TAG_NAME, "summary").click()  # the folded reading guide
         assert "Bold" in [e.text for e in driver.find_elements(By.CSS_SELECTOR, "p strong")]
 
-        def column(name):
-            table = driver.find_element(By.ID, "results")
+        def column(table_id, name):
+            table = driver.find_element(By.ID, table_id)
             headers = [th.text for th in table.find_elements(By.CSS_SELECTOR, "thead th")]
             index = headers.index(name)
             return [
@@ -209,18 +224,31 @@ def test_the_page_sorts_and_filters_in_a_real_browser(published, tmp_path):
                 if row.is_displayed()
             ]
 
-        before = column("RMSE")
+        before = column("results", "RMSE")
         driver.find_element(By.XPATH, "//table[@id='results']//th[text()='RMSE']").click()
-        ascending = [float(v) for v in column("RMSE")]
+        ascending = [float(v) for v in column("results", "RMSE")]
         assert ascending == sorted(ascending) and ascending != [float(v) for v in before]
         driver.find_element(By.XPATH, "//table[@id='results']//th[text()='RMSE']").click()
-        assert [float(v) for v in column("RMSE")] == sorted(ascending, reverse=True)
+        assert [float(v) for v in column("results", "RMSE")] == sorted(ascending, reverse=True)
 
-        everything = len(column("System"))
+        everything = len(column("results", "System"))
         Select(driver.find_element(By.ID, "filter-system")).select_by_value("vdp")
-        assert set(column("System")) == {"vdp"} and len(column("System")) == everything // 2
+        assert set(column("results", "System")) == {"vdp"}
+        assert len(column("results", "System")) == everything // 2
         Select(driver.find_element(By.ID, "filter-regime")).select_by_value("square")
-        assert set(column("Regime")) == {"square"} and len(column("Regime")) == everything // 4
+        assert set(column("results", "Regime")) == {"square"}
+        assert len(column("results", "Regime")) == everything // 4
+        Select(driver.find_element(By.ID, "filter-system")).select_by_value("")
+        Select(driver.find_element(By.ID, "filter-regime")).select_by_value("")
+
+        # another track: its panel replaces the paper's, and its long table sorts
+        driver.find_element(By.CSS_SELECTOR, 'button.tab[data-tab="far-init"]').click()
+        assert visible_tables()[0].get_attribute("id") == "board-far-init-0"
+        assert not driver.find_element(By.ID, "board-paper-0").is_displayed()
+        driver.find_element(By.XPATH, "//table[@id='track-far-init']//th[text()='RMSE']").click()
+        sorted_rmse = [float(v) for v in column("track-far-init", "RMSE")]
+        assert sorted_rmse == sorted(sorted_rmse) and len(sorted_rmse) > 1
+        assert [e for e in driver.get_log("browser") if e["level"] == "SEVERE"] == []
         driver.save_screenshot(str(tmp_path / "leaderboard-page.png"))
         assert (tmp_path / "leaderboard-page.png").stat().st_size > 10_000
     finally:
@@ -240,6 +268,8 @@ def test_a_cost_measurement_replaces_the_scoring_runs_times(results, tmp_path):
         "threads": 1,
         "seed": 0,
         "git_commit": "abc1234",
+        "run": 1,
+        "reference_us_per_trajectory_step": 120.0,
     }
     rows = [
         {**measured, "regime": regime, "us_per_trajectory_step": value}

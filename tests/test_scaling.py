@@ -7,6 +7,8 @@ import pandas as pd
 import pytest
 
 from kkl_bench import scaling
+from kkl_bench.report import markdown
+from kkl_bench.report.scaling import study_section, write_study
 
 
 def cells(estimator, n, rmse, fit_time, status="ok", regimes=("zero", "sinusoid"), report=None):
@@ -151,7 +153,7 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
         + cells("gru", 10, math.nan, math.nan, status="error")
     )
     summary = scaling.cell_summary(results)
-    scaling.write_study(summary, first, "standard", tmp_path)
+    write_study(summary, first, "standard", tmp_path)
     stored = scaling.stored_timings(tmp_path / "scaling.csv")
     pd.testing.assert_frame_equal(stored, first, check_dtype=False)
 
@@ -166,7 +168,7 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
     assert merged.loc[("kkl", 10), "ekf_us_per_step_batch20"] == 600  # its run's EKF
     assert merged.loc[("ekf", 10), "us_per_step_batch20"] == 200  # the stored EKF stays
     assert merged.loc[("ekf", 10), "timing_run"] == 1
-    text = scaling.render_scaling(scaling.scaling_frame(summary, merged.reset_index()), "standard")
+    text = render_scaling(scaling.scaling_frame(summary, merged.reset_index()), "standard")
     assert (
         "Timing run 2 (code of commit f00d) added `kkl` at n = 10, beside the EKF at the same sizes (EKF in run 2: "
         "n = 10: 600 and 30 µs/step at batch 20 and 1 (run 1: 200 and 10))." in text
@@ -191,8 +193,12 @@ def test_a_study_written_before_timing_runs_were_recorded_reads_as_run_one(tmp_p
 def test_report_states_exponents_crossovers_and_failures():
     study = frame()
     study.loc[3, ["status", "rmse"]] = ["MemoryError: 40 GB", math.nan]
-    text = scaling.render_scaling(study, "standard")
+    text = render_scaling(study, "standard")
     assert "| ekf         | 40  | failed: MemoryError: 40 GB |" in text
     assert "| kkl         | 3.00       | 2.00               | 0.50              |" in text
     assert "| ekf         | -          | 0.00               | 1.00              |" in text
     assert "| kkl         | every n    | every n   |" in text
+
+
+def render_scaling(frame, profile):
+    return markdown.section(study_section(frame, profile))

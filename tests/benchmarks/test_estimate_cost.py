@@ -17,8 +17,8 @@ import pytest
 
 from kkl_bench import variants
 from kkl_bench.executors import thread_limit
-from kkl_bench.harness import RunSpec, make_fit_context
 from kkl_bench.registry import estimators
+from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.task import Task, get_profile, make_test_set
 
 SYSTEM, REGIME = "duffing", "sinusoid"

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 from kkl_bench import scaling, variants
-from kkl_bench.harness import RunSpec, make_fit_context
 from kkl_bench.registry import estimators
+from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.task import Task, get_profile, make_test_set
 from tests.benchmarks.test_estimate_cost import FEW_STEPS, one_thread  # noqa: F401 (fixture)
 

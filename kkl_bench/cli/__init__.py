@@ -1,0 +1,75 @@
+"""The ``kkl-bench`` command line.
+
+Thin by design: each subcommand's module declares its arguments beside the
+code that runs it (``add_parser``), and calls the harness, the leaderboard,
+the reporting layer or the conformance kit. ``main`` only dispatches and turns
+the errors a user can fix into one line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from collections.abc import Sequence
+
+from kkl_bench.cli import admin, publishing, run, tables
+from kkl_bench.registry import PluginLoadError, UnknownNameError
+from kkl_bench.task import ProfileError
+
+EXAMPLES = """\
+examples:
+  kkl-bench list
+  kkl-bench run --estimator ukf --profile quick
+  kkl-bench run --estimator ekf --system duffing vdp --regime sinusoid square
+  kkl-bench run --estimator all --track ood-inputs noise far-init --profile standard
+  kkl-bench run --estimator dynamic_hyperkkl 'static_hyperkkl[guard=True]' --seed 0 1 2
+  kkl-bench leaderboard --with-paper
+  kkl-bench leaderboard --format latex > table.tex
+  kkl-bench leaderboard --track far-init
+  kkl-bench publish --results results --out board
+  kkl-bench compare dynamic_hyperkkl autonomous_kkl --results leaderboard/results
+  kkl-bench plot --results results --out figures
+  kkl-bench run --estimator all --profile standard --jobs 2
+  kkl-bench run --estimator ekf --executor dask --scheduler tcp://scheduler:8786
+  kkl-bench cost --estimator all 'static_hyperkkl[guard=True]' --out board
+  kkl-bench cache info
+  kkl-bench check my_estimator --system duffing lorenz
+"""
+
+COMMANDS = (admin, run, tables, publishing)
+"""The modules that declare the subcommands (``add_parser``), in the order help lists them."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="kkl-bench",
+        description="Benchmark state observers of nonlinear systems driven by exogenous inputs.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module in COMMANDS:
+        module.add_parser(commands)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(argv)
+    args.command_line = shlex.join(["kkl-bench", *argv])
+    try:
+        return args.handler(args)
+    except (
+        UnknownNameError,
+        PluginLoadError,
+        ProfileError,
+        ValueError,
+        OSError,
+        ImportError,
+    ) as error:
+        print(f"kkl-bench: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("kkl-bench: interrupted", file=sys.stderr)
+        return 130

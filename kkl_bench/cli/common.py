@@ -1,0 +1,150 @@
+"""What the subcommands share: name validation, argument types and options, reading results."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import pandas as pd
+
+from kkl_bench import summary, variants
+from kkl_bench.registry import estimators
+from kkl_bench.results import DamagedCellError, load_results
+
+
+def names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:
+    """``requested`` validated against ``registry``; ``None`` means every name, and ``all``
+    among others stands for every name in its place (``all 'static_hyperkkl[guard=True]'``).
+
+    Estimators may be variants (``static_hyperkkl[guard=True]``), returned canonical.
+    """
+    if not requested:
+        return tuple(registry.names())
+    requested = [
+        name for entry in requested for name in (registry.names() if entry == "all" else [entry])
+    ]
+    if registry is estimators:
+        return tuple(dict.fromkeys(variants.canonical(name) for name in requested))
+    for name in requested:
+        registry.get(name)  # raises an error that lists the valid names
+    return tuple(dict.fromkeys(requested))
+
+
+def positive_integer(what: str) -> Callable[[str], int]:
+    """An argument type: a positive integer, or an error naming ``what`` and the text."""
+
+    def parse(text: str) -> int:
+        if not text.isdigit() or int(text) < 1:
+            raise argparse.ArgumentTypeError(f"{what} must be a positive integer, got {text!r}")
+        return int(text)
+
+    return parse
+
+
+def seed(text: str) -> int:
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"seed must be a non-negative integer, got {text!r}")
+    return int(text)
+
+
+def add_results_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--results",
+        type=Path,
+        default=Path("results"),
+        metavar="DIR",
+        help="results directory (default ./results)",
+    )
+
+
+def add_cache_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="cache of trained models (default $KKL_BENCH_CACHE, else ./.kkl_bench_cache)",
+    )
+
+
+def add_reading_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--results``, ``--profile`` and ``--tolerate-damaged`` of the commands that read results."""
+    add_results_argument(parser)
+    parser.add_argument(
+        "--profile", help="profile to read (default: standard if present, else the only one)"
+    )
+    parser.add_argument(
+        "--tolerate-damaged",
+        action="store_true",
+        help="exit 0 even if damaged cell files were left out (they are always named)",
+    )
+
+
+def add_out_argument(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
+    parser.add_argument(
+        "--out", type=Path, default=out, metavar="DIR", help=f"{where} (default {out})"
+    )
+
+
+def add_drawing_arguments(parser: argparse.ArgumentParser, out: Path, where: str) -> None:
+    """The reading arguments and ``--out`` of the commands that draw from results."""
+    add_reading_arguments(parser)
+    add_out_argument(parser, out, where)
+
+
+def load(
+    args: argparse.Namespace, check_versions: bool = True
+) -> tuple[pd.DataFrame, list[DamagedCellError]]:
+    """The results of the chosen profile and the damaged cell files left out (each warned of).
+
+    Without ``--profile``: ``standard`` if present, else the only profile.
+    With ``check_versions``, cells of different protocol or toolkit versions
+    are refused (``ValueError`` naming them).
+    """
+    damaged: list[DamagedCellError] = []
+    results = load_results(args.results, damaged)
+    for error in damaged:
+        print(f"kkl-bench: warning: left out {error}", file=sys.stderr)
+    if results.empty:
+        raise ValueError(f"no results under {args.results}/; run `kkl-bench run` first")
+    profiles = sorted(set(results["profile"]))
+    profile = args.profile or ("standard" if "standard" in profiles else profiles[0])
+    if profile not in profiles:
+        raise ValueError(
+            f"no results for profile {profile!r} in {args.results}/; found: {', '.join(profiles)}"
+        )
+    if args.profile is None and len(profiles) > 1:
+        print(
+            f"(profile {profile}; results also hold {', '.join(p for p in profiles if p != profile)})",
+            file=sys.stderr,
+        )
+    args.profile = profile
+    results = results[results["profile"] == profile]
+    if check_versions:
+        summary.check_not_mixed(results)
+    return results, damaged
+
+
+def exit_status(args: argparse.Namespace, damaged: list[DamagedCellError]) -> int:
+    """1 if damaged cells were left out (unless tolerated), else 0."""
+    if damaged and not args.tolerate_damaged:
+        print(
+            f"kkl-bench: {len(damaged)} damaged cell file(s) left out; `kkl-bench run` with the "
+            "same arguments recomputes them (--tolerate-damaged exits 0)",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def of_track(results: pd.DataFrame, track: str) -> pd.DataFrame:
+    """The cells of ``track``; the error names the tracks the results hold."""
+    selected = results[results["track"] == track]
+    if selected.empty:
+        raise ValueError(
+            f"no results for track {track!r}; the results hold "
+            f"{', '.join(sorted(set(results['track'])))} (run with --track {track})"
+        )
+    return selected

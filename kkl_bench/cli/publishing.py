@@ -1,0 +1,212 @@
+"""``kkl-bench publish``, ``plot``, ``scaling`` and ``cost``: the published folder and what
+feeds it."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from tqdm import tqdm
+
+from kkl_bench import harness, leaderboard
+from kkl_bench.cache import default_cache_dir
+from kkl_bench.cli.common import (
+    add_cache_argument,
+    add_drawing_arguments,
+    add_out_argument,
+    exit_status,
+    load,
+    names,
+    of_track,
+    positive_integer,
+    seed,
+)
+from kkl_bench.protocol.streams import PAPER_TRACK
+from kkl_bench.registry import estimators, systems
+from kkl_bench.report import markdown
+from kkl_bench.results import provenance
+from kkl_bench.significance import MARGIN
+from kkl_bench.summary import summary_table
+from kkl_bench.task import get_profile
+
+
+def add_parser(commands) -> None:
+    publish = commands.add_parser(
+        "publish",
+        help="write a leaderboard folder (README, LaTeX, CSV, figures, index.html) from results",
+        description="Write the leaderboard folder from stored results alone: README.md with "
+        "the tables, LaTeX, CSV, figures (needs matplotlib: pip install 'kkl-bench[plot]') "
+        "and a static index.html. The same results give byte-identical files.",
+    )
+    add_drawing_arguments(publish, Path("leaderboard"), "the folder to write")
+    publish.add_argument(
+        "--margin",
+        type=float,
+        default=MARGIN,
+        help=f"practical-equivalence margin of the bold marks: a win must be by more than "
+        f"this fraction (default {MARGIN:g})",
+    )
+    publish.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a board of another profile or results folder in --out (default: refuse)",
+    )
+    publish.set_defaults(handler=publish_folder)
+
+    plot = commands.add_parser(
+        "plot",
+        help="draw the figures from stored results (PNG and SVG)",
+        description="Per (system, regime) the states and error norm on test trajectory 0, "
+        "a heat map of RMSE relative to the UKF, and cost against RMSE. "
+        "Needs matplotlib: pip install 'kkl-bench[plot]'.",
+    )
+    add_drawing_arguments(plot, Path("."), "figures go to DIR/figures/")
+    plot.set_defaults(handler=draw)
+
+    scaling = commands.add_parser(
+        "scaling",
+        help="the Lorenz-96 scaling study: fit time, online cost and RMSE against n",
+        description="From the more-systems cells of Lorenz-96 (n = 5, 10, 20, 40) and the "
+        "models their run cached, time every fitted estimator's estimate side by side "
+        "(batch 20 and 1, one thread) and write scaling.md, scaling.csv and "
+        "figures/scaling.png|svg with the fitted exponent of each cost. Run "
+        "`kkl-bench run --track more-systems --estimator all` first, with the same --cache.",
+    )
+    add_drawing_arguments(scaling, Path("leaderboard"), "the folder to write")
+    add_cache_argument(scaling)
+    scaling.add_argument(
+        "--seed", type=seed, default=0, help="the training seed whose models are timed (default 0)"
+    )
+    scaling.add_argument(
+        "--missing-only",
+        action="store_true",
+        help="time only the fitted (estimator, n) that the study in --out has no online cost "
+        "for, beside the EKF at the same sizes, and keep the other rows' costs (to add an "
+        "estimator or a size without fitting the rest again)",
+    )
+    scaling.set_defaults(handler=scaling_study)
+
+    cost = commands.add_parser(
+        "cost",
+        help="time every estimator's estimate side by side on the paper track (cost.csv)",
+        description="Load each estimator's trained models from the cache (fitting them if "
+        "missing), then time its estimate on every test set of the chosen tracks, all "
+        "estimators and the EKF beside them in turn in one process, on --threads threads, "
+        "best of --rounds. Merges the rows into DIR/cost.csv (the other rows keep their own "
+        "runs; --replace rewrites it), which `kkl-bench publish` shows in the cost table in "
+        "place of the times the scoring runs measured (those come from many runs and "
+        "machine loads).",
+    )
+    cost.add_argument(
+        "--estimator",
+        nargs="+",
+        default=["all"],
+        metavar="NAME",
+        help="estimators or variants to time, or 'all' (default)",
+    )
+    cost.add_argument("--system", nargs="+", metavar="NAME", help="systems (default: all)")
+    cost.add_argument(
+        "--track", nargs="+", default=["paper"], help="tracks whose test sets are timed"
+    )
+    cost.add_argument("--profile", default="standard", help="profile (default standard)")
+    cost.add_argument(
+        "--seed", type=seed, default=0, help="the training seed whose models are timed (default 0)"
+    )
+    cost.add_argument(
+        "--rounds", type=positive_integer("rounds"), default=3, help="timings per call (default 3)"
+    )
+    cost.add_argument(
+        "--threads",
+        type=positive_integer("threads"),
+        default=1,
+        help="threads while timing (default 1)",
+    )
+    cost.add_argument(
+        "--max-seconds",
+        type=float,
+        default=10.0,
+        help="stop timing a call once its timings add up to this (default 10)",
+    )
+    cost.add_argument(
+        "--replace",
+        action="store_true",
+        help="rewrite cost.csv with this run's rows only (default: merge them into it)",
+    )
+    add_out_argument(cost, Path("leaderboard"), "the folder whose cost.csv to merge into")
+    add_cache_argument(cost)
+    cost.set_defaults(handler=time_costs)
+
+
+def publish_folder(args: argparse.Namespace) -> int:
+    from kkl_bench.report.publish import publish
+
+    results, damaged = load(args)
+    written = publish(results, args.results, args.out, args.margin, args.force)
+    print(f"wrote {len(written)} files to {args.out}/")
+    return exit_status(args, damaged)
+
+
+def draw(args: argparse.Namespace) -> int:
+    from kkl_bench.report.publish import draw_figures
+
+    results, damaged = load(args)
+    summary = summary_table(of_track(results, PAPER_TRACK))
+    drawn = draw_figures(summary, args.results, args.profile, args.out)
+    print(f"wrote {2 * len(drawn)} figures to {args.out / 'figures'}/")
+    return exit_status(args, damaged)
+
+
+def scaling_study(args: argparse.Namespace) -> int:
+    from kkl_bench import scaling
+    from kkl_bench.report.scaling import write_study
+
+    results, damaged = load(args)
+    cells = scaling.cell_summary(results)
+    profile = results["profile"].iloc[0]
+    spec = harness.RunSpec(
+        estimators=tuple(sorted(set(cells["estimator"]))),
+        systems=tuple(scaling.system_name(n) for n in sorted(set(cells["n"]))),
+        regimes=(scaling.REGIME,),
+        tracks=(scaling.TRACK,),
+        profile=get_profile(profile),
+        cache_dir=args.cache or default_cache_dir(),
+    )
+    study = args.out / "scaling.csv"
+    stored = scaling.stored_timings(study if args.missing_only else None)
+    wanted = scaling.untimed(cells, stored)
+    fitted = {
+        (estimator, n): scaling.fit_from_cache(spec, estimator, n, args.seed)
+        for estimator, n in tqdm(wanted, desc="loading fitted models", unit="model")
+    }
+    if fitted:
+        commit = provenance()["git_commit"]
+        timings = scaling.timing_frame(scaling.time_estimators(spec, fitted), commit)
+        stored = scaling.add_timings(stored, timings)
+    else:
+        print(f"every fitted estimator already has its online cost in {study}")
+    written = write_study(cells, stored, profile, args.out)
+    print(f"wrote {', '.join(map(str, written))}")
+    return exit_status(args, damaged)
+
+
+def time_costs(args: argparse.Namespace) -> int:
+    from kkl_bench import cost
+
+    spec = harness.RunSpec(
+        estimators=names(estimators, args.estimator),
+        systems=names(systems, args.system),
+        regimes=None,
+        tracks=tuple(args.track),
+        profile=get_profile(args.profile),
+        seeds=(args.seed,),
+        cache_dir=args.cache or default_cache_dir(),
+    )
+    out = args.out / cost.COST_FILE
+    rows = cost.measure(spec, out, args.rounds, args.threads, args.max_seconds, args.replace)
+    print(markdown.table(leaderboard.measured_cost_table(rows)))
+    kept = len(cost.read_costs(out)) - len(rows)
+    print(
+        f"wrote {len(rows)} rows (run {rows['run'].iloc[0]}) to {out}; "
+        f"{kept} rows of earlier runs kept"
+    )
+    return 0

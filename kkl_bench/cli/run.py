@@ -1,0 +1,170 @@
+"""``kkl-bench run``: fit estimators and score them, with a progress line of what each job does."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from tqdm import tqdm
+
+from kkl_bench import harness, status
+from kkl_bench.cache import default_cache_dir
+from kkl_bench.cli.common import (
+    add_cache_argument,
+    add_results_argument,
+    names,
+    positive_integer,
+    seed,
+)
+from kkl_bench.devices import DEVICES
+from kkl_bench.devices import resolve as resolve_device
+from kkl_bench.executors import EXECUTORS
+from kkl_bench.protocol.streams import PAPER_TRACK
+from kkl_bench.registry import estimators, systems
+from kkl_bench.task import get_profile
+from kkl_bench.tracks import load_tracks
+
+RESUME = (
+    "every finished cell is saved; run the same command again to resume (finished cells "
+    "are skipped, failed and missing ones computed)"
+)
+
+
+def add_parser(commands) -> None:
+    run = commands.add_parser(
+        "run",
+        help="fit estimators and score them on the test sets",
+        description="Fit each estimator once per system, score it on every regime's test set, "
+        "and write one result file per cell. Cells already on disk are skipped (use --force).",
+    )
+    run.add_argument(
+        "--estimator",
+        nargs="+",
+        required=True,
+        metavar="NAME",
+        help="estimator names, variants such as 'static_hyperkkl[guard=True]', or 'all'",
+    )
+    run.add_argument("--system", nargs="+", metavar="NAME", help="systems to run (default: all)")
+    run.add_argument(
+        "--track",
+        nargs="+",
+        default=[PAPER_TRACK],
+        metavar="NAME",
+        help="tracks to score on, or 'all' (default: paper); estimators are fitted once "
+        "and scored on every track",
+    )
+    run.add_argument(
+        "--regime",
+        nargs="+",
+        metavar="NAME",
+        help="tasks of the tracks to score, e.g. sinusoid or chirp (default: all)",
+    )
+    run.add_argument("--profile", default="quick", help="profile: quick (default) or standard")
+    run.add_argument(
+        "--seed",
+        type=seed,
+        nargs="+",
+        default=[0],
+        metavar="SEED",
+        help="training seeds, one fit per seed (default 0); estimators that ignore "
+        "the seed (the filters) run with the first only",
+    )
+    add_results_argument(run)
+    add_cache_argument(run)
+    run.add_argument(
+        "--jobs",
+        type=positive_integer("jobs"),
+        default=1,
+        metavar="N",
+        help="run N (estimator, system) jobs at once (default 1)",
+    )
+    run.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="loky",
+        help="loky: local worker processes (default); dask: a Dask cluster (see --scheduler)",
+    )
+    run.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="Dask scheduler address, e.g. tcp://10.0.0.5:8786 (default: start a LocalCluster of --jobs workers)",
+    )
+    run.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where torch estimators train: auto (default: cuda if torch sees a GPU, else "
+        "cpu), cpu or cuda; models are cached as CPU tensors and estimates run on the CPU",
+    )
+    run.add_argument("--force", action="store_true", help="recompute cells already on disk")
+    run.set_defaults(handler=run_command)
+
+
+def run_command(args: argparse.Namespace) -> int:
+    spec = harness.RunSpec(
+        estimators=names(estimators, args.estimator),
+        systems=names(systems, args.system),
+        regimes=tuple(dict.fromkeys(args.regime)) if args.regime else None,
+        tracks=tuple(load_tracks()) if args.track == ["all"] else tuple(args.track),
+        profile=get_profile(args.profile),
+        seeds=tuple(args.seed),
+        results_dir=args.results,
+        cache_dir=args.cache or default_cache_dir(),
+        force=args.force,
+        device=args.device,
+        command=args.command_line,
+    )
+    if args.scheduler is None:  # local workers: a missing GPU is an error before any work
+        resolve_device(args.device)
+    total = sum(len(spec.seeds_for(name)) for name in spec.estimators) * len(spec.tasks())
+    with (
+        tqdm(
+            total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0
+        ) as bar,
+        showing_jobs(bar, spec.results_dir / ".claims" / spec.profile.name),
+    ):
+
+        def progress(cell, outcome):
+            if outcome == "error":
+                tqdm.write(f"error in {cell.estimator} {cell.task}: {cell.error.splitlines()[-1]}")
+            bar.update()
+
+        try:
+            summary = harness.run(
+                spec, progress, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler
+            )
+        except KeyboardInterrupt:
+            print(f"kkl-bench: interrupted; {RESUME}", file=sys.stderr)
+            return 130
+    print(
+        f"{len(summary.scored)} cells scored, {len(summary.cached)} already done, "
+        f"{len(summary.failed)} failed; results in {spec.results_dir}/{spec.profile.name}/"
+        + (f"; {RESUME}" if summary.failed else "")
+    )
+    return 0 if summary.ok else 1
+
+
+@contextlib.contextmanager
+def showing_jobs(bar: tqdm, claims: Path, every_s: float = 1.0) -> Iterator[None]:
+    """Show beside ``bar``, every ``every_s`` seconds, what each running job says it does
+    (:mod:`kkl_bench.status`): which estimator fits or scores on which system, and how
+    far its training is."""
+    since, stop = time.time() - 1.0, threading.Event()
+
+    def show() -> None:
+        while not stop.wait(every_s):
+            bar.set_postfix_str(" | ".join(status.current(claims, since)) or "")
+
+    thread = threading.Thread(target=show, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+        bar.set_postfix_str("")

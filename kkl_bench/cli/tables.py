@@ -1,0 +1,91 @@
+"""``kkl-bench leaderboard`` and ``kkl-bench compare``: tables of stored results in the terminal."""
+
+from __future__ import annotations
+
+import argparse
+
+from kkl_bench import comparisons, leaderboard
+from kkl_bench.cli.common import add_reading_arguments, exit_status, load, of_track
+from kkl_bench.protocol.streams import PAPER_TRACK
+from kkl_bench.report import markdown
+from kkl_bench.summary import summary_table, track_summary, version_groups
+from kkl_bench.task import get_profile, load_profiles
+from kkl_bench.tracks import get_track
+
+
+def add_parser(commands) -> None:
+    board = commands.add_parser("leaderboard", help="print the leaderboard from stored results")
+    board.add_argument("--format", choices=leaderboard.FORMATS, default="markdown")
+    add_reading_arguments(board)
+    board.add_argument(
+        "--track",
+        default=PAPER_TRACK,
+        metavar="NAME",
+        help="the track to tabulate (default: paper), or 'summary' for every track's RMSE "
+        "relative to the paper track's",
+    )
+    board.add_argument(
+        "--with-paper",
+        action="store_true",
+        help="add the HyperKKL paper's numbers as reference rows",
+    )
+    board.add_argument(
+        "--by-version",
+        action="store_true",
+        help="tabulate cells of different protocol or KKL toolkit versions as separate, "
+        "labelled groups (default: refuse to mix them)",
+    )
+    board.add_argument(
+        "--details",
+        action="store_true",
+        help="append fit time, estimation cost and NRMSE per estimator and system (markdown)",
+    )
+    board.set_defaults(handler=print_leaderboard)
+
+    versus = commands.add_parser(
+        "compare",
+        help="compare two estimators cell by cell with a paired bootstrap",
+        description="Per cell: the ratio of A's mean RMSE to B's, its 90 %% interval from the "
+        "paired hierarchical bootstrap (test trajectories and seeds resampled) and the verdict "
+        "of one-sided tests at 5 %%.",
+    )
+    versus.add_argument("a", metavar="A", help="estimator (or variant) name")
+    versus.add_argument("b", metavar="B", help="estimator (or variant) name")
+    add_reading_arguments(versus)
+    versus.add_argument(
+        "--track", default=PAPER_TRACK, metavar="NAME", help="the track (default: paper)"
+    )
+    versus.set_defaults(handler=compare)
+
+
+def print_leaderboard(args: argparse.Namespace) -> int:
+    results, damaged = load(args, check_versions=not args.by_version)
+    if args.track == "summary":
+        frame = track_summary(results)
+        print(
+            frame.to_csv(index=False, float_format="%.6g")
+            if args.format == "csv"
+            else markdown.table(leaderboard.track_summary_table(frame))
+        )
+        return exit_status(args, damaged)
+    settling = get_track(args.track).settling
+    results = of_track(results, args.track)
+    with_paper = args.with_paper and args.track == PAPER_TRACK
+    if args.format == "markdown":
+        smoke = args.profile in load_profiles() and get_profile(args.profile).smoke
+        print(leaderboard.caption(args.track, args.profile, smoke, settling))
+    for label, cells in version_groups(results).items():
+        if label:
+            print(f"\n{label}\n" if args.format == "markdown" else f"# {label}")
+        summary = summary_table(cells, with_paper=with_paper)
+        print(leaderboard.render(summary, args.format, settling=settling), end="")
+        if args.details:
+            print("\n" + markdown.table(leaderboard.cost_table(summary)))
+    return exit_status(args, damaged)
+
+
+def compare(args: argparse.Namespace) -> int:
+    results, damaged = load(args)
+    results = of_track(results, args.track)
+    print(markdown.table(comparisons.comparison_table(summary_table(results), args.a, args.b)))
+    return exit_status(args, damaged)

@@ -1,0 +1,153 @@
+"""Rows against rows: two estimators cell by cell (paired bootstrap), and every row against
+the particle filter's Bayes limit."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from kkl_bench import variants
+from kkl_bench.report.model import Table
+from kkl_bench.significance import compare
+from kkl_bench.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, in_paper_order
+
+COMPARISON_COLUMNS = (
+    "cell",
+    "system",
+    "regime",
+    "rmse_a",
+    "rmse_b",
+    "ratio",
+    "low",
+    "high",
+    "verdict",
+)
+"""Columns of :func:`comparison_frame`."""
+
+
+def comparison_frame(summary: pd.DataFrame, a: str, b: str) -> pd.DataFrame:
+    """Per cell both estimators scored: ``a``'s RMSE over ``b``'s, its 90 % bootstrap
+    interval (``low``, ``high``) and the verdict of :func:`kkl_bench.significance.compare`
+    (``"a lower"``, ``"b lower"``, ``"not distinguishable"`` or ``"diverged"``), in paper
+    order; columns :data:`COMPARISON_COLUMNS`."""
+    indexed = summary.set_index(["estimator", "system", "regime"])
+    for name in (a, b):
+        if name not in set(summary["estimator"]):
+            raise ValueError(
+                f"no results for {name!r}; estimators in the results: "
+                f"{', '.join(sorted(set(summary['estimator'])))}"
+            )
+    rows = []
+    for system in in_paper_order(summary["system"], SYSTEM_TITLES):
+        for regime in in_paper_order(summary["regime"], REGIME_TITLES):
+            if (a, system, regime) not in indexed.index or (b, system, regime) not in indexed.index:
+                continue
+            first, second = indexed.loc[(a, system, regime)], indexed.loc[(b, system, regime)]
+            if first["status"] != "ok" or second["status"] != "ok":
+                continue
+            result = compare(
+                np.asarray(first["rmse_trajectories"]), np.asarray(second["rmse_trajectories"])
+            )
+            rows.append(
+                {
+                    "cell": f"{SYSTEM_TITLES.get(system, system)} {REGIME_TITLES.get(regime, regime)}",
+                    "system": system,
+                    "regime": regime,
+                    "rmse_a": first["rmse_mean"],
+                    "rmse_b": second["rmse_mean"],
+                    **result,
+                }
+            )
+    return pd.DataFrame(rows, columns=list(COMPARISON_COLUMNS))
+
+
+def comparison_cells(
+    frame: pd.DataFrame, last: Sequence[str], headers: Sequence[str], id: str = ""
+) -> Table:
+    """The rows of a :func:`comparison_frame` as shown: cell, both RMSEs, ratio and
+    ``[low, high]`` (3 significant digits), then the row's item of ``last``, under
+    ``headers`` (six)."""
+    keys = ["cell", "rmse_a", "rmse_b", "ratio", "interval", "last"]
+    rows = [
+        [
+            row.cell,
+            f"{row.rmse_a:.3g}",
+            f"{row.rmse_b:.3g}",
+            f"{row.ratio:.3g}",
+            f"[{row.low:.3g}, {row.high:.3g}]",
+            extra,
+        ]
+        for row, extra in zip(frame.itertuples(), last, strict=True)
+    ]
+    return Table(pd.DataFrame(rows, columns=keys), dict(zip(keys, headers, strict=True)), id=id)
+
+
+def comparison_table(summary: pd.DataFrame, a: str, b: str) -> Table:
+    """:func:`comparison_frame` with verdicts naming the estimators."""
+    frame = comparison_frame(summary, a, b)
+    names = {"a lower": f"{a} lower", "b lower": f"{b} lower"}
+    verdicts = [names.get(verdict, verdict) for verdict in frame["verdict"]]
+    headers = ["Cell", f"RMSE {a}", f"RMSE {b}", "ratio", "90 % interval", "verdict (5 %)"]
+    return comparison_cells(frame, verdicts, headers, id="comparison")
+
+
+LIMIT = "particle_filter"
+"""The row the other estimators are measured against in :func:`limit_frame`."""
+MODEL_BASED = ("ekf", "ukf", LIMIT)
+"""Estimators given the exact model and nothing learned; every other row is a learned one."""
+LIMIT_COLUMNS = {
+    "system": "System",
+    "regime": "Regime",
+    "limit_rmse": "Particle filter RMSE",
+    "ekf": "EKF / limit",
+    "ukf": "UKF / limit",
+    "best_learned": "Best learned",
+    "best_learned_ratio": "Best learned / limit",
+}
+
+
+def limit_frame(summary: pd.DataFrame) -> pd.DataFrame:
+    """Per cell: the particle filter's RMSE (the posterior mean under the exact model, the
+    least any estimator can expect) and the EKF's, the UKF's and the best learned row's
+    RMSE over it (:data:`LIMIT_COLUMNS`). Empty without particle-filter results."""
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    ok = ours[ours["status"] == "ok"].set_index(["estimator", "system", "regime"])["rmse_mean"]
+    learned = [
+        e for e in dict.fromkeys(ours["estimator"]) if variants.base_name(e) not in MODEL_BASED
+    ]
+    rows = []
+    for system in in_paper_order(ours["system"], SYSTEM_TITLES):
+        for regime in in_paper_order(ours["regime"], REGIME_TITLES):
+            limit = ok.get((LIMIT, system, regime), math.nan)
+            if not math.isfinite(limit):
+                continue
+            candidates = {e: ok[(e, system, regime)] for e in learned if (e, system, regime) in ok}
+            best = min(candidates, key=candidates.get) if candidates else ""
+            rows.append(
+                {
+                    "system": system,
+                    "regime": regime,
+                    "limit_rmse": limit,
+                    "ekf": ok.get(("ekf", system, regime), math.nan) / limit,
+                    "ukf": ok.get(("ukf", system, regime), math.nan) / limit,
+                    "best_learned": best,
+                    "best_learned_ratio": candidates[best] / limit if best else math.nan,
+                }
+            )
+    return pd.DataFrame(rows, columns=list(LIMIT_COLUMNS))
+
+
+def limit_table(summary: pd.DataFrame) -> Table | None:
+    """:func:`limit_frame` with system and regime titles (None without particle-filter
+    results)."""
+    frame = limit_frame(summary)
+    if frame.empty:
+        return None
+    frame = frame.assign(
+        system=frame["system"].map(lambda s: SYSTEM_TITLES.get(s, s)),
+        regime=frame["regime"].map(lambda r: REGIME_TITLES.get(r, r)),
+    )
+    return Table(frame, LIMIT_COLUMNS, id="limit")

@@ -1,0 +1,169 @@
+"""The scaling study as a section of text, tables and a figure (``scaling.md``)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+
+from kkl_bench import figures
+from kkl_bench.report import markdown
+from kkl_bench.report.model import Figure, Section, Table, Text
+from kkl_bench.scaling import (
+    BATCHES,
+    COSTS,
+    ONLINE,
+    REFERENCE,
+    REFERENCE_ONLINE,
+    REGIME,
+    STEPS,
+    TRACK,
+    crossover,
+    exponents,
+    scaling_frame,
+)
+
+
+def study_section(frame: pd.DataFrame, profile: str) -> Section:
+    """The study: the per-size table, the exponents and the EKF crossovers."""
+    sizes = sorted(set(frame["n"]))
+    table = []
+    for estimator, rows_of in frame.groupby("estimator"):
+        for row in rows_of.itertuples():
+            ok = row.status == "ok"
+            table.append(
+                [
+                    estimator,
+                    row.n,
+                    f"{row.rmse:.3g}" if ok else f"failed: {row.status}",
+                    _cost(row.fit_time_s) if ok else "-",
+                    _cost(row.us_per_step_batch20),
+                    _cost(row.us_per_step_batch1),
+                ]
+            )
+    fitted = exponents(frame)
+    runs_of = frame.dropna(subset=["timing_run"]).groupby("estimator")["timing_run"].nunique()
+    mixed = set(runs_of[runs_of > 1].index)
+    exponent_table = [
+        [
+            row.estimator,
+            *(
+                _exponent(getattr(row, column))
+                + (" †" if row.estimator in mixed and column in ONLINE else "")
+                for column in COSTS
+            ),
+        ]
+        for row in fitted.itertuples()
+    ]
+    cheaper = crossover(frame)
+    crossings = [
+        [estimator, *(_crossing(cheaper.get((estimator, batch), []), sizes) for batch in BATCHES)]
+        for estimator in sorted({name for name, _ in cheaper})
+    ]
+    note = (
+        "\n\n† fitted to online costs from more than one timing run: the machine's "
+        "speed differs between runs (compare the EKF's costs in each), so the "
+        "exponent mixes that drift in."
+        if mixed
+        else ""
+    )
+    return Section(
+        "",
+        [
+            Text(
+                f"Lorenz-96 at n = {', '.join(map(str, sizes))} (track `{TRACK}`, profile "
+                f"`{profile}`). RMSE and fit time: means over the four regimes and the training "
+                "seeds. Fit time: the wall time of every training the fit used, wherever it ran "
+                "(stored with each trained model, so a KKL observer's shared Phase 1 counts in "
+                "every KKL row; '-' for a model trained before training times were recorded). "
+                "Online cost: the fastest of three timed calls on the first "
+                f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
+                f"turn in one run on one thread.{_later_runs(frame)}"
+            ),
+            _table(
+                table,
+                ["Estimator", "n", "RMSE", "Fit time (s)", "µs/step, batch 20", "µs/step, batch 1"],
+            ),
+            Text("Fitted exponents p of cost ~ n^p (least squares on log-log):"),
+            _table(
+                exponent_table, ["Estimator", "fit time", "online, batch 20", "online, batch 1"]
+            ),
+            *([Text(note.strip())] if note else []),
+            Text(
+                "Where each estimator is cheaper online than the EKF timed in the same run "
+                "(sizes measured):"
+            ),
+            _table(crossings, ["Estimator", "batch 20", "batch 1"]),
+            Figure("scaling", "scaling"),
+        ],
+    )
+
+
+def _table(rows: list[list], headers: list[str]) -> Table:
+    """A table of texts (numbers already written)."""
+    keys = [f"c{i}" for i in range(len(headers))]
+    frame = pd.DataFrame([[str(cell) for cell in row] for row in rows], columns=keys)
+    return Table(frame, dict(zip(keys, headers, strict=True)))
+
+
+def _later_runs(frame: pd.DataFrame) -> str:
+    """A sentence per timing run after the first: what it timed, and the reference's costs
+    in it beside those of the run that timed the reference's own rows."""
+    runs = sorted(int(run) for run in frame["timing_run"].dropna().unique())
+    reference = frame[frame["estimator"] == REFERENCE].set_index("n")
+    sentences = []
+    for run in runs[1:]:
+        rows = frame[frame["timing_run"] == run]
+        timed = "; ".join(
+            f"`{estimator}` at n = {', '.join(map(str, sorted(of['n'])))}"
+            for estimator, of in rows.groupby("estimator")
+        )
+        costs = ", ".join(
+            f"n = {row.n}: {_cost(getattr(row, REFERENCE_ONLINE[0]))} and "
+            f"{_cost(getattr(row, REFERENCE_ONLINE[1]))} µs/step at batch "
+            f"{BATCHES[0]} and {BATCHES[1]} (run {int(reference.loc[row.n, 'timing_run'])}: "
+            f"{_cost(reference.loc[row.n, ONLINE[0]])} and {_cost(reference.loc[row.n, ONLINE[1]])})"
+            for row in rows.drop_duplicates("n").sort_values("n").itertuples()
+        )
+        commit = rows["timing_commit"].iloc[0]
+        code = f" (code of commit {commit})" if isinstance(commit, str) else ""
+        sentences.append(
+            f" Timing run {run}{code} added {timed}, beside the {REFERENCE.upper()} at the same "
+            f"sizes ({REFERENCE.upper()} in run {run}: {costs})."
+        )
+    return "".join(sentences)
+
+
+def _cost(value: float) -> str:
+    return f"{value:.3g}" if isinstance(value, float) and math.isfinite(value) else "-"
+
+
+def _exponent(value: float) -> str:
+    return f"{value:.2f}" if math.isfinite(value) else "-"
+
+
+def _crossing(cheaper: list[int], sizes: Sequence[int]) -> str:
+    if not cheaper:
+        return f"never up to n = {max(sizes)}"
+    return "every n" if cheaper == sorted(sizes) else "n = " + ", ".join(map(str, cheaper))
+
+
+def write_study(cells: pd.DataFrame, timings: pd.DataFrame, profile: str, out: Path) -> list[Path]:
+    """Write ``scaling.md``, ``scaling.csv`` and ``figures/scaling.{png,svg}`` into ``out``."""
+    frame = scaling_frame(cells, timings)
+    out.mkdir(parents=True, exist_ok=True)
+    written_by = Section(
+        "", [Text("Written by `kkl-bench scaling` (see `docs/protocol.md` section 8).")]
+    )
+    text = markdown.document(
+        "Scaling study: Lorenz-96 from 5 to 40 states", [written_by, study_section(frame, profile)]
+    )
+    study = out / "scaling.md"
+    study.write_text(text, encoding="utf-8")
+    table = out / "scaling.csv"
+    frame.to_csv(table, index=False, float_format="%.6g")
+    figure = figures.scaling_figure(frame, COSTS, exponents(frame))
+    figures.save(figure, out / "figures" / "scaling")
+    return [study, table, out / "figures" / "scaling.png"]

@@ -1,0 +1,113 @@
+"""The sections of the tracks other than the paper's: their summary against the paper
+track, then one panel per track."""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from kkl_bench.leaderboard import grid_tables, track_summary_table
+from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
+from kkl_bench.report.board import Board, long_table
+from kkl_bench.report.model import Figure, Section, Text
+from kkl_bench.scaling import TRACK as SCALING_TRACK
+from kkl_bench.tracks import find_track
+
+SUMMARY_TAB = "tracks compared"
+"""The page's panel of the cross-track summary."""
+
+INTRODUCTION = """Every estimator is fitted once, exactly as for the paper's track (sensor
+noise 0.01, the paper's x0 boxes, its own training inputs), and scored on
+each track's test sets as well: the tracks test generalization, never
+retraining. The one exception is a `+logged` row of the `mismatch` track:
+the estimator fitted again per true plant, with the data logged on it.
+Marks and spread read as above."""
+
+RELATIVE = """Per estimator: for every cell of the track, its mean RMSE over the
+trajectories that did not diverge, divided by its own paper-track RMSE on
+the same system under the regime the track's task names as its reference
+(for example a chirp against the paper's sinusoid); the geometric mean of
+these ratios over the track's cells. Below 1: better than on the paper track.
+Diverged trajectories are left out of the ratio and counted beside it."""
+
+CONDITIONS_TEXT = (
+    "By condition: the ratio to the estimator's own paper-track RMSE as above, its "
+    "geometric mean taken over the systems and regimes of each condition."
+)
+
+
+def settles(name: str) -> bool:
+    """Whether track ``name`` shows settling times."""
+    track = find_track(name)
+    return track is not None and track.settling
+
+
+def grouped_conditions(conditions: pd.DataFrame, name: str) -> pd.DataFrame | None:
+    """Track ``name``'s rows of ``conditions`` (:func:`track_summary` by condition) if its
+    tasks group into fewer conditions than tasks (``mismatch``: ``params10``, ``params25``,
+    ``sensor``), else None."""
+    track = find_track(name)
+    if track is None or conditions.empty:
+        return None
+    rows = conditions[conditions["track"] == name]
+    grouped = 1 < rows["condition"].nunique() < len(track.tasks)
+    return rows if grouped else None
+
+
+def track_sections(board: Board) -> list[Section]:
+    """The summary of every track against the paper track, then a section per track
+    (empty if there is no other track)."""
+    tables = board.tables
+    if not tables.summaries:
+        return []
+    sections = [
+        Section("Tracks: where methods break", [Text(INTRODUCTION)], tab=SUMMARY_TAB),
+        Section(
+            "Each track relative to the paper track",
+            [Text(RELATIVE), track_summary_table(tables.relative, id="tracks")],
+            level=3,
+            tab=SUMMARY_TAB,
+        ),
+    ]
+    for name, summary in tables.summaries.items():
+        sections.append(_track(board, name, summary))
+    return sections
+
+
+def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
+    track = find_track(name)
+    description = f"{track.description} " if track else ""
+    text = (
+        f"{description}Task ids read `{name}/<system>/<task>@v<n>`; `docs/protocol.md` "
+        "(sections 7\nand 8) defines every task."
+    )
+    if settles(name):
+        text += (
+            f"\n\nBeside each RMSE, `settle (s)` is the median over trajectories of the "
+            f"settling time: the start of the first {SETTLING_WINDOW_S:g}-second window "
+            f"from which on every window's normalized RMSE (error over the test set's state "
+            f"standard deviation) stays below {SETTLING_THRESHOLD:g}; `never` counts the "
+            "trajectories that never settle."
+        )
+    if board.scaling_study and name == SCALING_TRACK:
+        text += (
+            "\n\nHow each estimator's fit time, online cost and RMSE grow with Lorenz-96's "
+            "dimension: the [scaling study](scaling.md) (`kkl-bench scaling`)."
+        )
+    blocks = [
+        Text(text),
+        *grid_tables(summary, settles(name), name=f"board-{name}"),
+        long_table(summary, f"track-{name}", settles(name)),
+    ]
+    grouped = grouped_conditions(board.tables.conditions, name)
+    if grouped is not None:
+        blocks += [
+            Text(CONDITIONS_TEXT),
+            track_summary_table(grouped, "condition", id=f"track-{name}-conditions"),
+        ]
+    blocks.append(Figure(f"relative-rmse-{name}", f"{name}: RMSE relative to the UKF"))
+    blocks += [
+        Figure(figure, figure)
+        for figure in board.figure_names
+        if figure.startswith(f"track-{name}-")
+    ]
+    return Section(f"Track `{name}`", blocks, level=3, tab=name)

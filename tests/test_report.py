@@ -1,0 +1,91 @@
+"""The report model: one list of sections, rendered as Markdown and as a page."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+import pytest
+
+from kkl_bench.report import html, markdown
+from kkl_bench.report import publish as publishing
+from kkl_bench.report.model import HTML, MARKDOWN, Code, Figure, Section, Table, Text
+
+
+def sample() -> list[Section]:
+    frame = pd.DataFrame({"estimator": ["a", "b"], "rmse": [0.125, 2.5], "system": ["vdp", "vdp"]})
+    marks = pd.DataFrame({"estimator": ["", ""], "rmse": ["best", ""], "system": ["", ""]})
+    shades = pd.DataFrame(
+        {"estimator": [math.nan] * 2, "rmse": [1.0, 20.0], "system": [math.nan] * 2}
+    )
+    return [
+        Section("", [Text("An *opening* with `code`.")]),
+        Section(
+            "Scores of `x`",
+            [
+                Text("Two rows."),
+                Table(
+                    frame,
+                    {"estimator": "Estimator", "rmse": "RMSE"},
+                    id="scores",
+                    marks=marks,
+                    shades=shades,
+                    sortable=True,
+                ),
+                Figure("scores", "the scores"),
+                Code("kkl-bench run --estimator a"),
+                Text("page only", only=HTML),
+                Text("README only", only=MARKDOWN),
+            ],
+            tab="paper",
+        ),
+        Section("Other", [Text("another panel")], tab="noise"),
+        Section("Last words", [Text("the end")]),
+    ]
+
+
+def test_one_section_list_gives_both_renderings():
+    text = markdown.document("Board", sample())
+    assert text.startswith("# Board\n\nAn *opening* with `code`.\n\n## Scores of `x`\n\nTwo rows.")
+    assert "| a           | **0.125** |\n| b           | 2.5       |" in text
+    assert "![the scores](figures/scores.png)" in text
+    assert "```bash\nkkl-bench run --estimator a\n```" in text
+    assert "README only" in text and "page only" not in text
+    page = html.document("Board", sample(), {"system": {"vdp": "Van der Pol"}})
+    assert "<h2>Scores of <code>x</code></h2>" in page and "<em>opening</em>" in page
+    assert '<td class="num best" style="background:#c6efce" data-value="0.125">0.125</td>' in page
+    assert 'style="background:#ffc7ce"' in page  # 20 times the best: red
+    assert '<tr data-system="vdp">' in page and 'id="filter-system"' in page
+    assert '<img src="figures/scores.svg" alt="the scores">' in page
+    assert "page only" in page and "README only" not in page
+    # tabbed sections sit in panels, the first shown, between the untabbed ones
+    assert page.index("An <em>opening</em>") < page.index('<nav class="tabs"')
+    assert (
+        page.index('<div class="panel" data-tab="paper">')
+        < page.index('<div class="panel" data-tab="noise" hidden>')
+        < page.index("Last words")
+    )
+
+
+@pytest.mark.parametrize(
+    ("ratio", "colour"), [(1.0, "#c6efce"), (math.sqrt(10), "#ffeb9c"), (10.0, "#ffc7ce"),
+                          (1e30, "#ffc7ce"), (math.inf, "#ffc7ce"), (math.nan, "")],
+)  # fmt: skip
+def test_cells_are_shaded_green_at_the_best_yellow_at_three_red_from_ten(ratio, colour):
+    assert html.shade(ratio) == colour
+
+
+def test_a_section_added_to_the_board_reaches_the_readme_and_the_page(monkeypatch, tmp_path):
+    from kkl_bench.cli import main
+
+    results = tmp_path / "results"
+    assert main(["run", "--estimator", "ekf", "--system", "vdp", "--regime", "zero",
+                 "--results", str(results)]) == 0  # fmt: skip
+    added = Section("A new table", [Table(pd.DataFrame({"what": ["answer"], "value": [42]}))])
+    every = publishing.sections
+    monkeypatch.setattr(publishing, "sections", lambda board: [*every(board), added])
+    assert main(["publish", "--results", str(results), "--out", str(tmp_path / "board")]) == 0
+    readme = (tmp_path / "board" / "README.md").read_text()
+    page = (tmp_path / "board" / "index.html").read_text()
+    assert "## A new table" in readme and "| answer |      42 |" in readme
+    assert "<h2>A new table</h2>" in page and '<td class="num" data-value="42.0">42</td>' in page
