@@ -19,14 +19,18 @@ class _RK4ExtendedKalmanFilter(ExtendedKalmanFilter):
     step, and ``F`` is its exact Jacobian at the prior mean.
     """
 
-    def __init__(self, system: System, dt: float) -> None:
+    def __init__(self, system: System, dt: float, inflation: float = 1.0) -> None:
         super().__init__(dim_x=system.n_x, dim_z=system.n_y)
         self.system = system
         self.dt = dt
+        self.inflation = inflation
 
     def predict(self, u=0.0):
         self.F = rk4_step_jacobian(self.system, self.x[:, 0], np.asarray(u), self.dt)
         super().predict(u)
+        if self.inflation != 1.0:  # P = inflation F P F^T + Q
+            self.P = self.inflation * (self.P - self.Q) + self.Q
+            self.P_prior = self.P.copy()
 
     def predict_x(self, u=0.0):
         self.x = rk4_step(self.system, self.x[:, 0], np.asarray(u), self.dt)[:, None]
@@ -34,12 +38,23 @@ class _RK4ExtendedKalmanFilter(ExtendedKalmanFilter):
 
 @estimators.register("ekf")
 class ExtendedKalman(KalmanBaseline):
-    """EKF with the RK4 transition, its exact Jacobian and the protocol's Q, R and prior."""
+    """EKF with the RK4 transition, its exact Jacobian and the protocol's Q, R and prior.
+
+    Parameters
+    ----------
+    inflation: factor on the propagated covariance, ``P = inflation F P F^T + Q`` (1: the
+        plain EKF; DAPPER's ``ExtKF(infl=a)`` at step ``dt`` is ``inflation = a**dt``).
+    """
 
     name = "ekf"
 
+    def __init__(self, inflation: float = 1.0) -> None:
+        self.inflation = inflation
+        if not (isinstance(inflation, int | float) and inflation >= 1.0):
+            raise ValueError(f"ekf: inflation={inflation!r} must be a number of at least 1")
+
     def make_filter(self, context: FitContext, dt: float):
-        kalman_filter = _RK4ExtendedKalmanFilter(context.system, dt)
+        kalman_filter = _RK4ExtendedKalmanFilter(context.system, dt, self.inflation)
         mean, covariance = box_prior(context)
         kalman_filter.x = mean[:, None].copy()
         kalman_filter.P = covariance

@@ -28,10 +28,9 @@ of trajectories that bound the memory.
 
 from __future__ import annotations
 
-import zlib
-
 import numpy as np
 from kkl_bench.estimators.kalman import box_prior
+from kkl_bench.estimators.monte_carlo import trajectory_generators
 from scipy.special import logsumexp
 
 from kkl_bench.estimator import Estimator
@@ -160,19 +159,11 @@ class ParticleFilter(Estimator):
             x_hat[rows] = self._filter(system, dt, y[rows], u[rows])
         return x_hat
 
-    def _generators(self, y: np.ndarray) -> list[np.random.Generator]:
-        """One generator per trajectory, keyed by the seed and the first measurement."""
-        seed = self.check_fitted().seed
-        return [
-            np.random.default_rng([seed, zlib.crc32(np.ascontiguousarray(first).tobytes())])
-            for first in y[:, 0]
-        ]
-
     def _filter(self, system: System, dt: float, y: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Posterior means ``(batch, steps, n_x)`` for ``y: (batch, steps, n_y)``, ``u: (batch, steps, 1)``."""
         context = self.check_fitted()
         q, r = context.sigma_w**2, context.sigma_v**2
-        generators = self._generators(y)
+        generators = trajectory_generators(context.seed, y[:, 0])
 
         def normals(dim):  # (batch, n, dim), each trajectory from its own generator
             return np.stack([rng.standard_normal((self.n, dim)) for rng in generators])

@@ -96,7 +96,7 @@ def comparison_table(summary: pd.DataFrame, a: str, b: str) -> Table:
 
 LIMIT = "particle_filter"
 """The row the other estimators are measured against in :func:`limit_frame`."""
-MODEL_BASED = ("ekf", "ukf", LIMIT)
+MODEL_BASED = ("ekf", "ukf", "enkf", LIMIT)
 """Estimators given the exact model and nothing learned; every other row is a learned one."""
 LIMIT_COLUMNS = {
     "system": "System",
@@ -104,6 +104,7 @@ LIMIT_COLUMNS = {
     "limit_rmse": "Particle filter RMSE",
     "ekf": "EKF / limit",
     "ukf": "UKF / limit",
+    "enkf": "EnKF / limit",
     "best_learned": "Best learned",
     "best_learned_ratio": "Best learned / limit",
 }
@@ -133,6 +134,7 @@ def limit_frame(summary: pd.DataFrame) -> pd.DataFrame:
                     "limit_rmse": limit,
                     "ekf": ok.get(("ekf", system, regime), math.nan) / limit,
                     "ukf": ok.get(("ukf", system, regime), math.nan) / limit,
+                    "enkf": ok.get(("enkf", system, regime), math.nan) / limit,
                     "best_learned": best,
                     "best_learned_ratio": candidates[best] / limit if best else math.nan,
                 }

@@ -243,6 +243,7 @@ def test_limit_frame_divides_by_the_particle_filter_and_names_the_best_learned_r
         ("particle_filter", 0.10),
         ("ekf", 0.11),
         ("ukf", 0.105),
+        ("enkf", 0.102),
         ("particle_filter[n=100]", 0.09),  # model-based too, never "learned"
         ("gru_observer", 0.15),
         ("kalmannet", 0.12),
@@ -262,6 +263,7 @@ def test_limit_frame_divides_by_the_particle_filter_and_names_the_best_learned_r
             "limit_rmse": 0.10,
             "ekf": pytest.approx(1.1),
             "ukf": pytest.approx(1.05),
+            "enkf": pytest.approx(1.02),
             "best_learned": "kalmannet",
             "best_learned_ratio": pytest.approx(1.2),
         }

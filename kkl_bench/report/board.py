@@ -223,7 +223,7 @@ def paper_sections(board: Board) -> list[Section]:
 
 LIMIT_TEXT = """`particle_filter` estimates the posterior mean under the exact model (protocol
 section 6.1): no estimator can expect a lower RMSE. Each row divides the
-EKF's, the UKF's and the best learned row's RMSE by it (1.00: at the limit;
+EKF's, the UKF's, the EnKF's and the best learned row's RMSE by it (1.00: at the limit;
 a ratio a little below 1 is the particle filter's own Monte Carlo error)."""
 
 FINDINGS_GUIDE = """Each claim below is tested cell by cell on the results above: the ratio is
