@@ -12,7 +12,10 @@ forecast anomalies ``A = X - x_bar`` (``N x n``), ``Y_b`` the anomalies of
 so the analysis mean and covariance are the Kalman filter's for the ensemble's
 Gaussian, and the anomalies stay centred. After each analysis the anomalies
 are multiplied by ``inflation`` (multiplicative inflation of the posterior,
-the convention of DAPPER's ``EnKF('Sqrt', infl=...)``). Each member is then
+the convention of DAPPER's ``EnKF('Sqrt', infl=...)``). By default the
+inflation is tuned per system like every other row's free choices: the one
+of :data:`INFLATIONS` with the lowest RMSE over the scored window of forced
+validation trajectories of a training stream (never a test stream). Each member is then
 propagated by the protocol's transition: the RK4 step with the held input,
 process noise ``N(0, sigma_w^2 I)`` and the system's constraint, as the truth
 is. A sample whose measurement is missing (NaN) is a forecast only.
@@ -29,6 +32,8 @@ import numpy as np
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 
 from kkl_bench.estimator import Estimator
+from kkl_bench.kkl.inputs import FORCED_TRAINING
+from kkl_bench.protocol.metrics import steady_state_start
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
@@ -56,6 +61,11 @@ def transform(forecast: np.ndarray, predicted: np.ndarray, y: np.ndarray, r: flo
     return mean + (weights + root) @ anomalies  # W_a is symmetric
 
 
+INFLATIONS = (1.0, 1.01, 1.02, 1.05, 1.1)
+"""The inflations the default ``enkf`` chooses from."""
+VALIDATION_TRAJECTORIES = 16
+
+
 @estimators.register("enkf")
 class EnsembleKalman(Estimator):
     """Ensemble transform (square-root) Kalman filter with multiplicative inflation.
@@ -63,21 +73,45 @@ class EnsembleKalman(Estimator):
     Parameters
     ----------
     n: ensemble members per trajectory (at least 2).
-    inflation: factor on the analysis anomalies after each update (1: none).
+    inflation: factor on the analysis anomalies after each update (1: none), or None
+        (default) to choose it per system on validation trajectories (see the module).
     """
 
     name = "enkf"
 
-    def __init__(self, n: int = 24, inflation: float = 1.02) -> None:
+    def __init__(self, n: int = 24, inflation: float | None = None) -> None:
         self.n = n
         self.inflation = inflation
         if not (isinstance(n, int) and n >= 2):
             raise ValueError(f"enkf: n={n!r} must be an integer of at least 2")
-        if not (isinstance(inflation, int | float) and inflation >= 1.0):
-            raise ValueError(f"enkf: inflation={inflation!r} must be a number of at least 1")
+        if inflation is not None and not (isinstance(inflation, int | float) and inflation >= 1):
+            raise ValueError(
+                f"enkf: inflation={inflation!r} must be a number of at least 1, or None"
+            )
+
+    def fit(self, context):
+        super().fit(context)
+        self.scores_ = {}
+        self.inflation_ = self.inflation
+        if self.inflation is None:
+            data = context.training.simulate(
+                FORCED_TRAINING, VALIDATION_TRAJECTORIES, stream="enkf/validation"
+            )
+            start = steady_state_start(data.x.shape[1])
+            for inflation in INFLATIONS:
+                self.inflation_ = inflation
+                x_hat = self.estimate(data.t, data.y, data.u)
+                error = float(np.sqrt(np.mean((x_hat[:, start:] - data.x[:, start:]) ** 2)))
+                self.scores_[f"{inflation:g}"] = error if np.isfinite(error) else float("inf")
+            self.inflation_ = min(INFLATIONS, key=lambda value: self.scores_[f"{value:g}"])
+        return self
 
     def fit_report(self):
-        return {"members": self.n, "inflation": self.inflation}
+        return {
+            "members": self.n,
+            "inflation": self.inflation_,
+            **({"inflation_selection": self.scores_} if self.scores_ else {}),
+        }
 
     def estimate(self, t, y, u):
         context = self.check_fitted()
@@ -128,5 +162,5 @@ class EnsembleKalman(Estimator):
             self.check_fitted().sigma_v ** 2,
         )
         mean = analysis.mean(axis=1, keepdims=True)
-        updated[observed] = mean + self.inflation * (analysis - mean)
+        updated[observed] = mean + self.inflation_ * (analysis - mean)
         return updated
