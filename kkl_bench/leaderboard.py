@@ -356,7 +356,7 @@ def paper_comparison(summary: pd.DataFrame) -> Table:
 def track_summary_table(frame: pd.DataFrame, column: str = "track", id: str = "") -> Table:
     """Estimators as rows, the values of ``column`` (``track``, or ``condition`` for one
     track's :func:`~kkl_bench.summary.track_summary` by condition) as columns, ``ratio``
-    (and diverged counts)."""
+    with the median of the cells' ratios (and diverged counts)."""
     headers = list(dict.fromkeys(frame[column]))
     indexed = frame.set_index(["estimator", column])
     rows = []
@@ -367,7 +367,9 @@ def track_summary_table(frame: pd.DataFrame, column: str = "track", id: str = ""
                 row.append("-")
                 continue
             cell = indexed.loc[(estimator, header)]
-            text = f"{cell['ratio']:.3g}x" if math.isfinite(cell["ratio"]) else "-"
+            text = "-"
+            if math.isfinite(cell["ratio"]):
+                text = f"{cell['ratio']:.3g}x (median {cell['median']:.3g}x)"
             if cell["n_diverged"]:
                 text += f" ({int(cell['n_diverged'])}/{int(cell['n_trajectories'])} diverged)"
             row.append(text)

@@ -262,10 +262,11 @@ def track_summary(results: pd.DataFrame, by_condition: bool = False) -> pd.DataF
     trajectories (all seeds) divided by the same estimator's mean paper-track
     RMSE on the same system under the task's reference regime (declared in
     the track file); ``ratio`` is the geometric mean of these over the
-    track's cells. ``n_diverged`` and ``n_trajectories`` count the track's
+    track's cells and ``median`` their median (one system can dominate the
+    mean). ``n_diverged`` and ``n_trajectories`` count the track's
     diverged and scored trajectories. A track with no cell to compare (one of
     other systems, such as ``more-systems``) is left out. Columns: estimator,
-    track, ratio, n_cells, n_diverged, n_trajectories; ``by_condition``: one row
+    track, ratio, median, n_cells, n_diverged, n_trajectories; ``by_condition``: one row
     per estimator, track and :func:`condition` (column ``condition``, after
     ``track``), e.g. the mismatch track's ``params10``, ``params25`` and ``sensor``.
     """
@@ -301,7 +302,7 @@ def track_summary(results: pd.DataFrame, by_condition: bool = False) -> pd.DataF
                 }
             )
     keys = ["estimator", "track", *(["condition"] if by_condition else [])]
-    columns = [*keys, "ratio", "n_cells", "n_diverged", "n_trajectories"]
+    columns = [*keys, "ratio", "median", "n_cells", "n_diverged", "n_trajectories"]
     if not cells:
         return pd.DataFrame(columns=columns)
     frame = (
@@ -309,6 +310,7 @@ def track_summary(results: pd.DataFrame, by_condition: bool = False) -> pd.DataF
         .groupby(keys, sort=False)
         .agg(
             ratio=("ratio", lambda r: float(np.exp(np.log(r.dropna()).mean()))),
+            median=("ratio", lambda r: float(r.median())),
             n_cells=("ratio", "count"),
             n_diverged=("n_diverged", "sum"),
             n_trajectories=("n_trajectories", "sum"),

@@ -26,12 +26,14 @@ RELATIVE = """Per estimator: for every cell of the track, its mean RMSE over the
 trajectories that did not diverge, divided by its own paper-track RMSE on
 the same system under the regime the track's task names as its reference
 (for example a chirp against the paper's sinusoid); the geometric mean of
-these ratios over the track's cells. Below 1: better than on the paper track.
+these ratios over the track's cells, and in parentheses their median (one
+system can dominate the mean: `docs/protocol.md` section 7.5 on Lorenz with
+its parameters 25 % off). Below 1: better than on the paper track.
 Diverged trajectories are left out of the ratio and counted beside it."""
 
 CONDITIONS_TEXT = (
     "By condition: the ratio to the estimator's own paper-track RMSE as above, its "
-    "geometric mean taken over the systems and regimes of each condition."
+    "geometric mean (and median) taken over the systems and regimes of each condition."
 )
 
 
