@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 
+from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.protocol.metrics import steady_state_start
@@ -67,7 +68,7 @@ VALIDATION_TRAJECTORIES = 16
 
 
 @estimators.register("enkf")
-class EnsembleKalman(Estimator):
+class EnsembleKalman(CalibratesOnLoggedData, Estimator):
     """Ensemble transform (square-root) Kalman filter with multiplicative inflation.
 
     Parameters
@@ -108,6 +109,7 @@ class EnsembleKalman(Estimator):
 
     def fit_report(self):
         return {
+            **super().fit_report(),
             "members": self.n,
             "inflation": self.inflation_,
             **({"inflation_selection": self.scores_} if self.scores_ else {}),

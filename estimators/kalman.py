@@ -13,6 +13,7 @@ from abc import abstractmethod
 
 import numpy as np
 
+from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator, FitContext
 
 
@@ -22,13 +23,15 @@ def box_prior(context: FitContext) -> tuple[np.ndarray, np.ndarray]:
     return (low + high) / 2.0, np.diag((high - low) ** 2 / 12.0)
 
 
-class KalmanBaseline(Estimator):
+class KalmanBaseline(CalibratesOnLoggedData, Estimator):
     """A filterpy filter run trajectory by trajectory over the batch.
 
     Subclasses build the filter (:meth:`make_filter`) and take one
     predict-update step (:meth:`step`). A filter that hits a singular matrix
     yields NaN from there on, so the trajectory is reported as diverged.
-    Nothing is trained, so the seed changes nothing: it is run once.
+    Nothing is trained, so the seed changes nothing: it is run once. Given
+    logged data (``mismatch``), the filter runs on the model calibrated on them
+    (:mod:`kkl_bench.calibration`).
     """
 
     uses_seed = False

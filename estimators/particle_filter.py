@@ -33,6 +33,7 @@ from kkl_bench.estimators.kalman import box_prior
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 from scipy.special import logsumexp
 
+from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
@@ -114,7 +115,7 @@ def optimal_proposal(
 
 
 @estimators.register("particle_filter")
-class ParticleFilter(Estimator):
+class ParticleFilter(CalibratesOnLoggedData, Estimator):
     """Particle filter with the locally optimal proposal (see the module doc).
 
     Parameters
@@ -144,7 +145,7 @@ class ParticleFilter(Estimator):
             )
 
     def fit_report(self):
-        return {"particles": self.n, "proposal": self.proposal}
+        return {**super().fit_report(), "particles": self.n, "proposal": self.proposal}
 
     def estimate(self, t, y, u):
         context = self.check_fitted()
