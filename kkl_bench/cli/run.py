@@ -121,7 +121,12 @@ def run_command(args: argparse.Namespace) -> int:
     )
     if args.scheduler is None:  # local workers: a missing GPU is an error before any work
         resolve_device(args.device)
-    total = sum(len(spec.seeds_for(name)) for name in spec.estimators) * len(spec.tasks())
+    total = sum(  # every row's cells, the +logged rows' included
+        len(spec.seeds_for(name)) * len(tasks)
+        for name in spec.estimators
+        for system in spec.systems
+        for _, tasks in harness.rows_and_tasks(spec, name, system)
+    )
     with (
         tqdm(
             total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0

@@ -25,22 +25,25 @@ class TrackTables:
     """What the folder shows of the tracks other than the paper's.
 
     summaries: track name -> its :func:`summary_table`; relative: :func:`track_summary`
-    (each track against the paper track); conditions: the same by condition.
+    (each track against the paper track); conditions: the same by condition; cells:
+    track name -> its cells.
     """
 
     summaries: dict[str, pd.DataFrame]
     relative: pd.DataFrame
     conditions: pd.DataFrame
+    cells: dict[str, pd.DataFrame]
 
     @classmethod
     def of(cls, results: pd.DataFrame, margin: float) -> TrackTables:
         others = results[results["track"] != PAPER_TRACK]
-        summaries = {
-            name: summary_table(cells, margin=margin) for name, cells in others.groupby("track")
-        }
+        cells = dict(iter(others.groupby("track")))
+        summaries = {name: summary_table(of, margin=margin) for name, of in cells.items()}
         if not summaries:
-            return cls({}, pd.DataFrame(), pd.DataFrame())
-        return cls(summaries, track_summary(results), track_summary(results, by_condition=True))
+            return cls({}, pd.DataFrame(), pd.DataFrame(), {})
+        return cls(
+            summaries, track_summary(results), track_summary(results, by_condition=True), cells
+        )
 
 
 @dataclass(frozen=True)

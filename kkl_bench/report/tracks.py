@@ -6,10 +6,12 @@ from __future__ import annotations
 import pandas as pd
 
 from kkl_bench.leaderboard import grid_tables, track_summary_table
+from kkl_bench.plants import true_plant
 from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
 from kkl_bench.report.board import Board, long_table
-from kkl_bench.report.model import Figure, Section, Text
+from kkl_bench.report.model import Figure, Section, Table, Text
 from kkl_bench.scaling import TRACK as SCALING_TRACK
+from kkl_bench.summary import SYSTEM_TITLES, condition
 from kkl_bench.tracks import find_track
 
 SUMMARY_TAB = "tracks compared"
@@ -53,6 +55,58 @@ def grouped_conditions(conditions: pd.DataFrame, name: str) -> pd.DataFrame | No
     rows = conditions[conditions["track"] == name]
     grouped = 1 < rows["condition"].nunique() < len(track.tasks)
     return rows if grouped else None
+
+
+def calibration_table(cells: pd.DataFrame, track: str) -> Table | None:
+    """Per system and true plant of ``track``: each parameter the ``+logged`` model-based
+    rows fitted (:mod:`kkl_bench.calibration`, from their fit reports) beside the true
+    plant's, with the relative error; None if no cell recorded a calibration."""
+    declared = find_track(track)
+    rows, seen = [], set()
+    for cell in cells.sort_values(["system", "regime", "estimator"]).itertuples():
+        report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
+        if "calibration" not in report or declared is None:
+            continue
+        plant = declared.task(cell.regime).plant
+        if (cell.system, plant) in seen:
+            continue
+        seen.add((cell.system, plant))
+        truth = {
+            **true_plant(cell.system, plant, track).params(),
+            "sensor_gain": plant.sensor_gain,
+            "sensor_offset": plant.sensor_offset,
+        }
+        for name, fitted in report["calibration"].items():
+            off = fitted - truth[name]
+            rows.append(
+                {
+                    "system": SYSTEM_TITLES.get(cell.system, cell.system),
+                    "plant": condition(track, cell.regime),
+                    "parameter": name,
+                    "true": truth[name],
+                    "fitted": fitted,
+                    "error": 100 * off / truth[name] if truth[name] else off,
+                }
+            )
+    if not rows:
+        return None
+    columns = {
+        "system": "System",
+        "plant": "Plant",
+        "parameter": "Parameter",
+        "true": "True plant",
+        "fitted": "Calibrated",
+        "error": "Error (%; offset: absolute)",
+    }
+    return Table(pd.DataFrame(rows), columns, id=f"track-{track}-calibration", floatfmt=".4g")
+
+
+CALIBRATION_TEXT = (
+    "The model-based `+logged` rows filter with the nominal model calibrated on the 100 "
+    "logged trajectories (protocol section 7.5): its physical parameters and the sensor's "
+    "gain and offset, fitted by least squares without reading the true plant. What they "
+    "fitted, beside the true plant's values:"
+)
 
 
 def track_sections(board: Board) -> list[Section]:
@@ -106,6 +160,9 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
             Text(CONDITIONS_TEXT),
             track_summary_table(grouped, "condition", id=f"track-{name}-conditions"),
         ]
+    calibrated = calibration_table(board.tables.cells[name], name)
+    if calibrated is not None:
+        blocks += [Text(CALIBRATION_TEXT), calibrated]
     blocks.append(Figure(f"relative-rmse-{name}", f"{name}: RMSE relative to the UKF"))
     blocks += [
         Figure(figure, figure)
