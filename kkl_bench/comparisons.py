@@ -153,3 +153,45 @@ def limit_table(summary: pd.DataFrame) -> Table | None:
         regime=frame["regime"].map(lambda r: REGIME_TITLES.get(r, r)),
     )
     return Table(frame, LIMIT_COLUMNS, id="limit")
+
+
+CALIBRATED = "ukf+logged"
+"""The calibrate-then-filter row the learned ``+logged`` rows are compared with."""
+
+
+def calibrated_versus_learned(summary: pd.DataFrame, track: str) -> pd.DataFrame:
+    """Per cell of ``track`` (its :func:`~kkl_bench.summary.summary_table`): the calibrated
+    UKF's RMSE against the lowest learned ``+logged`` row's, with the ratio, its 90 %
+    interval and the verdict of :func:`~kkl_bench.significance.compare` (``"a lower"``:
+    calibrate-then-filter is lower). Empty without both kinds of rows."""
+    from kkl_bench.summary import condition
+
+    ok = summary[(summary["status"] == "ok") & (summary["n_diverged"] == 0)]
+    indexed = ok.set_index(["estimator", "system", "regime"])
+    learned = sorted(
+        name
+        for name in set(ok["estimator"])
+        if name.endswith("+logged")
+        and variants.base_name(variants.split_logged(name)[0]) not in MODEL_BASED
+    )
+    rows = []
+    for (system, regime), cell in ok.groupby(["system", "regime"], sort=False):
+        rivals = cell[cell["estimator"].isin(learned)]
+        if (CALIBRATED, system, regime) not in indexed.index or rivals.empty:
+            continue
+        best = rivals.loc[rivals["rmse_mean"].idxmin()]
+        ours = indexed.loc[(CALIBRATED, system, regime)]
+        result = compare(
+            np.asarray(ours["rmse_trajectories"]), np.asarray(best["rmse_trajectories"])
+        )
+        rows.append(
+            {
+                "condition": condition(track, regime),
+                "cell": f"{SYSTEM_TITLES.get(system, system)} {regime}",
+                "rmse_a": ours["rmse_mean"],
+                "rmse_b": best["rmse_mean"],
+                "learned": best["estimator"],
+                **result,
+            }
+        )
+    return pd.DataFrame(rows)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pandas as pd
 
+from kkl_bench.comparisons import calibrated_versus_learned, comparison_cells
 from kkl_bench.leaderboard import grid_tables, track_summary_table
 from kkl_bench.plants import true_plant
 from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
@@ -101,6 +102,44 @@ def calibration_table(cells: pd.DataFrame, track: str) -> Table | None:
     return Table(pd.DataFrame(rows), columns, id=f"track-{track}-calibration", floatfmt=".4g")
 
 
+VERSUS_TEXT = (
+    "Calibrate the model and filter, or train a network on the logged data? Per cell, "
+    "the calibrated UKF (`ukf+logged`) against the learned `+logged` row with the lowest "
+    "RMSE: the ratio of their RMSEs with its 90 % interval from the paired bootstrap of "
+    "the marks; *lower* where the interval lies below (calibrated lower) or above "
+    "(learned lower) 1."
+)
+
+
+def versus_blocks(summary: pd.DataFrame, track: str) -> list:
+    """The calibrate-or-learn comparison of ``track`` with a tally per condition."""
+    frame = calibrated_versus_learned(summary, track)
+    if frame.empty:
+        return []
+    names = {"a lower": "calibrated lower", "b lower": "learned lower"}
+    verdicts = [names.get(verdict, verdict) for verdict in frame["verdict"]]
+    tallies = "; ".join(
+        f"`{name}`: calibrated lower in {(rows['verdict'] == 'a lower').sum()} of {len(rows)} "
+        f"cells, learned lower in {(rows['verdict'] == 'b lower').sum()}"
+        for name, rows in frame.groupby("condition", sort=False)
+    )
+    headers = [
+        "Cell",
+        "RMSE `ukf+logged`",
+        "RMSE best learned",
+        "ratio",
+        "90 % interval",
+        "verdict",
+    ]
+    table = comparison_cells(frame, verdicts, headers, id=f"track-{track}-versus")
+    learned = Table(
+        frame.assign(cell=frame["cell"]),
+        {"cell": "Cell", "learned": "Best learned `+logged` row"},
+        id=f"track-{track}-versus-rows",
+    )
+    return [Text(f"{VERSUS_TEXT} By condition: {tallies}."), table, learned]
+
+
 CALIBRATION_TEXT = (
     "The model-based `+logged` rows filter with the nominal model calibrated on the 100 "
     "logged trajectories (protocol section 7.5): its physical parameters and the sensor's "
@@ -162,7 +201,7 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
         ]
     calibrated = calibration_table(board.tables.cells[name], name)
     if calibrated is not None:
-        blocks += [Text(CALIBRATION_TEXT), calibrated]
+        blocks += [Text(CALIBRATION_TEXT), calibrated, *versus_blocks(summary, name)]
     blocks.append(Figure(f"relative-rmse-{name}", f"{name}: RMSE relative to the UKF"))
     blocks += [
         Figure(figure, figure)
