@@ -124,20 +124,20 @@ def versus_blocks(summary: pd.DataFrame, track: str) -> list:
         for name, rows in frame.groupby("condition", sort=False)
     )
     headers = [
-        "Cell",
+        "Cell (best learned row)",
         "RMSE `ukf+logged`",
-        "RMSE best learned",
+        "RMSE learned",
         "ratio",
         "90 % interval",
         "verdict",
     ]
-    table = comparison_cells(frame, verdicts, headers, id=f"track-{track}-versus")
-    learned = Table(
-        frame.assign(cell=frame["cell"]),
-        {"cell": "Cell", "learned": "Best learned `+logged` row"},
-        id=f"track-{track}-versus-rows",
+    cells = [
+        f"{cell} (`{name}`)" for cell, name in zip(frame["cell"], frame["learned"], strict=True)
+    ]
+    table = comparison_cells(
+        frame.assign(cell=cells), verdicts, headers, id=f"track-{track}-versus"
     )
-    return [Text(f"{VERSUS_TEXT} By condition: {tallies}."), table, learned]
+    return [Text(f"{VERSUS_TEXT} By condition: {tallies}."), table]
 
 
 CALIBRATION_TEXT = (
