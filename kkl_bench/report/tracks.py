@@ -97,7 +97,7 @@ def calibration_table(cells: pd.DataFrame, track: str) -> Table | None:
         "parameter": "Parameter",
         "true": "True plant",
         "fitted": "Calibrated",
-        "error": "Error (%; offset: absolute)",
+        "error": "Error (% of the true value; absolute where it is 0)",
     }
     return Table(pd.DataFrame(rows), columns, id=f"track-{track}-calibration", floatfmt=".4g")
 
