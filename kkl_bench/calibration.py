@@ -22,9 +22,10 @@ noise level so that both weigh as what they are, standardized errors:
 
 ``scipy.optimize.least_squares`` (trust-region reflective) starts from the
 nominal values, with every parameter in ``[0, 2]`` times nominal, the gain in
-``[0.5, 2]`` and the offset in ``[-1, 1]``. Parameters that the system's constructor
-does not take (Lorenz-96's dimension) stay as they are. The true plant's parameters are never read; the
-conformance kit seals them while the estimator fits.
+``[0.5, 2]`` and the offset in ``[-1, 1]``. Parameters that the system's
+constructor does not take (Lorenz-96's dimension) stay as they are. The true
+plant's parameters are never read; the conformance kit seals them while the
+estimator fits.
 """
 
 from __future__ import annotations

@@ -12,7 +12,13 @@ import pandas as pd
 from kkl_bench import variants
 from kkl_bench.report.model import Table
 from kkl_bench.significance import compare
-from kkl_bench.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, in_paper_order
+from kkl_bench.summary import (
+    PAPER_PREFIX,
+    REGIME_TITLES,
+    SYSTEM_TITLES,
+    condition,
+    in_paper_order,
+)
 
 COMPARISON_COLUMNS = (
     "cell",
@@ -164,8 +170,6 @@ def calibrated_versus_learned(summary: pd.DataFrame, track: str) -> pd.DataFrame
     UKF's RMSE against the lowest learned ``+logged`` row's, with the ratio, its 90 %
     interval and the verdict of :func:`~kkl_bench.significance.compare` (``"a lower"``:
     calibrate-then-filter is lower). Empty without both kinds of rows."""
-    from kkl_bench.summary import condition
-
     ok = summary[(summary["status"] == "ok") & (summary["n_diverged"] == 0)]
     indexed = ok.set_index(["estimator", "system", "regime"])
     learned = sorted(

@@ -28,6 +28,7 @@ import pandas as pd
 from tabulate import tabulate
 
 from kkl_bench.comparisons import LIMIT
+from kkl_bench.report import markdown
 from kkl_bench.report.model import Table
 from kkl_bench.significance import MARGIN
 from kkl_bench.summary import (
@@ -208,8 +209,6 @@ def render(
     tabulars) or ``"csv"`` (the summary itself, one row per estimator x cell).
     ``settling`` adds the settling-time columns.
     """
-    from kkl_bench.report import markdown
-
     if fmt not in FORMATS:
         raise ValueError(f"unknown format {fmt!r}; valid formats: {', '.join(FORMATS)}")
     if summary.empty:

@@ -18,10 +18,10 @@ other entry *by more than a margin of practical equivalence*: the ratio's 5 %
 quantile must be above ``1 + margin`` (:data:`MARGIN`, 1 %), so that two entries
 that differ by rounding, or by less than anyone would care about, are never
 told apart however many trajectories agree on it. Otherwise the best entry
-and every entry not distinguishable from it in that way are marked *tied*. Entries with a diverged trajectory (non-finite RMSE) are
-never best and never tied; a column with fewer than two finite entries has
-no marks. Resampling uses a fixed seed, so the marks are
-reproducible.
+and every entry not distinguishable from it in that way are marked *tied*.
+Entries with a diverged trajectory (non-finite RMSE) are never best and never
+tied; a column with fewer than two finite entries has no marks. Resampling
+uses a fixed seed, so the marks are reproducible.
 """
 
 from __future__ import annotations

@@ -10,9 +10,9 @@ or from the shell: ``kkl-bench check my_estimator``. Each check is small and
 named; :func:`estimator_checks` yields them for ``pytest.mark.parametrize``.
 
 The checks fit the estimator once per system (by default :data:`CHECK_SYSTEMS`:
-a two-state and a three-state system) with the ``quick`` profile's budget, inside :func:`sealed_test_streams` (so reading a
-test set fails), and run it on short forced trajectories from a stream of
-its own. Every fit gets a fresh, empty cache directory, so the determinism
+a two-state and a three-state system) with the ``quick`` profile's budget,
+inside :func:`sealed_test_streams` (so reading a test set fails), and run it
+on short forced trajectories from a stream of its own. Every fit gets a fresh, empty cache directory, so the determinism
 check really trains twice. An estimator that declares ``uses_logged_data``
 is also fitted on the ``mismatch`` track's logged data, with the true
 plants' parameter errors sealed as well.

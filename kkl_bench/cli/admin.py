@@ -10,7 +10,7 @@ from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.cli.common import add_cache_argument, names
 from kkl_bench.registry import estimators, regimes, systems
 from kkl_bench.task import load_profiles
-from kkl_bench.testing import CHECK_SYSTEMS
+from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
 from kkl_bench.tracks import load_tracks
 
 
@@ -70,8 +70,6 @@ def manage_cache(args: argparse.Namespace) -> int:
 
 
 def check_conformance(args: argparse.Namespace) -> int:
-    from kkl_bench.testing import describe, run_checks
-
     variants.build(args.estimator)  # an unknown name is a usage error, not a failed check
     failures = passes = 0
     for system, name, error in run_checks(args.estimator, names(systems, args.system)):
