@@ -24,9 +24,17 @@ from threadpoolctl import threadpool_limits
 EXECUTORS = ("loky", "dask")
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity, e.g. under ``taskset`` or a
+    container's cpuset), not the machine's count."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
 def threads_per_worker(jobs: int) -> int:
-    """Threads each of ``jobs`` concurrent workers may use on this machine."""
-    return max(1, (os.cpu_count() or 1) // jobs)
+    """Threads each of ``jobs`` concurrent workers may use on the cores this process has."""
+    return max(1, available_cores() // jobs)
 
 
 @contextlib.contextmanager

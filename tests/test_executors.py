@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from kkl_bench import harness
+from kkl_bench import executors, harness
 from kkl_bench.executors import execute
 from kkl_bench.harness import RunSpec, run
 from kkl_bench.results import cell_path, load_results
@@ -163,3 +163,12 @@ def test_a_dead_worker_keeps_finished_cells_and_records_the_rest(tmp_path, monke
     }
     assert all("not completed" in cell.error for cell in summary.failed)
     assert set(load_results(tmp_path).groupby("system")["status"].first()) == {"ok", "error"}
+
+
+def test_threads_per_worker_counts_the_cores_this_process_may_use(monkeypatch):
+    """Under ``taskset -c 1`` a single job gets one thread, not the machine's count."""
+    monkeypatch.setattr(executors.os, "sched_getaffinity", lambda pid: {1}, raising=False)
+    assert executors.threads_per_worker(1) == 1
+    monkeypatch.setattr(executors.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    assert executors.threads_per_worker(2) == 2
+    assert executors.threads_per_worker(8) == 1
