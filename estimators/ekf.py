@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
-from kkl_bench.estimators.kalman import KalmanBaseline, box_prior
+from kkl_bench.estimators.kalman import KalmanBaseline, box_prior, measurement_covariance
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
@@ -59,13 +59,15 @@ class ExtendedKalman(KalmanBaseline):
         kalman_filter.x = mean[:, None].copy()
         kalman_filter.P = covariance
         kalman_filter.Q = context.sigma_w**2 * np.eye(context.system.n_x)
-        kalman_filter.R = context.sigma_v**2 * np.eye(context.system.n_y)
+        kalman_filter.R = measurement_covariance(context)
         return kalman_filter
 
     def step(self, kalman_filter, u_previous, y):
         system = kalman_filter.system
         if u_previous is not None:
             kalman_filter.predict(u_previous)
+        if not np.isfinite(y).all():
+            return kalman_filter.x[:, 0]
         kalman_filter.update(
             y[:, None],
             HJacobian=lambda x: system.h_jacobian(x[:, 0]),

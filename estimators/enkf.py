@@ -18,7 +18,9 @@ of :data:`INFLATIONS` with the lowest RMSE over the scored window of forced
 validation trajectories of a training stream (never a test stream). Each
 member is then propagated by the protocol's transition: the RK4 step with the held input,
 process noise ``N(0, sigma_w^2 I)`` and the system's constraint, as the truth
-is. A sample whose measurement is missing (NaN) is a forecast only.
+is. A sample whose measurement is missing (NaN) is a forecast only. On a task with
+another measurement model the members are read through its sensor (``system.h``)
+and ``R`` is the noise law's variance (plus a quantizer's ``step^2 / 12``).
 
 The first ensemble is drawn from the uniform x0 box, the protocol's prior.
 Every trajectory draws from its own generator (seed and first measurement),
@@ -79,6 +81,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
     """
 
     name = "enkf"
+    supported_measurements = frozenset({"sensor", "sampling", "noise"})
 
     def __init__(self, n: int = 24, inflation: float | None = None) -> None:
         self.n = n
@@ -161,7 +164,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             ensemble[observed],
             system.h(ensemble[observed]),
             y[observed],
-            self.check_fitted().sigma_v ** 2,
+            self.check_fitted().measurement.variance,
         )
         mean = analysis.mean(axis=1, keepdims=True)
         updated[observed] = mean + self.inflation_ * (analysis - mean)

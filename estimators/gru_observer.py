@@ -86,6 +86,9 @@ class GRUObserver(Estimator):
 
     name = "gru_observer"
     uses_logged_data = True
+    supported_measurements = frozenset({"sensor", "noise"})
+    """Trained on the task's sensor and noise (``FitContext.training``); driven by a
+    measurement at every sample."""
 
     def __init__(self, cell: str = "gru") -> None:
         self.cell = cell

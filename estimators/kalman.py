@@ -4,7 +4,10 @@ Both filters run the protocol's discrete-time model: the RK4 step with the
 known held input as transition, ``Q = sigma_w^2 I`` (the process noise is
 added after each step), ``R = sigma_v^2 I``, and an initial estimate at the
 centre of the x0 box with the covariance of the uniform box distribution,
-``diag((high - low)^2 / 12)``.
+``diag((high - low)^2 / 12)``. On a task with another measurement model
+(:mod:`kkl_bench.measurement`) they read the state through its sensor (in
+``system.h`` and its Jacobian), take ``R`` as the noise law's variance (plus a
+quantizer's ``step^2 / 12``) and update only where ``y`` is present.
 """
 
 from __future__ import annotations
@@ -15,6 +18,12 @@ import numpy as np
 
 from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator, FitContext
+
+
+def measurement_covariance(context: FitContext) -> np.ndarray:
+    """``R = variance I``, ``(n_y, n_y)``: the task's noise law's variance, plus the sensor's
+    loss (``kkl_bench.measurement.MeasurementModel.variance``)."""
+    return context.measurement.variance * np.eye(context.system.n_y)
 
 
 def box_prior(context: FitContext) -> tuple[np.ndarray, np.ndarray]:
@@ -35,6 +44,7 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
     """
 
     uses_seed = False
+    supported_measurements = frozenset({"sensor", "sampling", "noise"})
 
     @abstractmethod
     def make_filter(self, context: FitContext, dt: float):
@@ -42,8 +52,8 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
 
     @abstractmethod
     def step(self, kalman_filter, u_previous: float | None, y: np.ndarray) -> np.ndarray:
-        """Predict with ``u_previous`` (None at k = 0), update with ``y: (n_y,)``;
-        return the posterior mean ``(n_x,)``."""
+        """Predict with ``u_previous`` (None at k = 0), update with ``y: (n_y,)`` if it is
+        present (not NaN); return the posterior mean ``(n_x,)``."""
 
     def estimate(self, t, y, u):
         context = self.check_fitted()

@@ -144,6 +144,9 @@ class KalmanNet(Estimator):
 
     name = "kalmannet"
     uses_logged_data = True
+    supported_measurements = frozenset({"sensor", "noise"})
+    """Trained on the task's sensor and noise (``FitContext.training``); driven by a
+    measurement at every sample."""
 
     def fit(self, context: FitContext):
         config = from_budget(RecurrentConfig, context)

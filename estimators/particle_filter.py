@@ -20,6 +20,14 @@ drawn from the box prior's Gaussian moments, inflated, updated by ``y_0``
 and weighted by ``1_box(x) p(y_0 | x) / q(x)``. Systematic resampling runs
 whenever the effective sample size drops below half the particles.
 
+On a task with another measurement model (:mod:`kkl_bench.measurement`) the
+weights use its exact log-density through its sensor (``system.h``); the
+proposal linearises the sensor and takes the noise law's variance (plus a
+quantizer's ``step^2 / 12``) as ``r``, which changes its efficiency, never the
+weights' correctness. A sample whose measurement is missing (NaN) moves the
+particles by the transition and leaves the weights as they are. The first
+sample is always measured (protocol 7.6).
+
 Every trajectory draws from its own generator, keyed by the seed and its
 first measurement, so estimates are causal, batch-independent and
 reproducible. Work is vectorised over particles and trajectories, in chunks
@@ -126,6 +134,8 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
     """
 
     name = "particle_filter"
+    supported_measurements = frozenset({"sensor", "sampling", "noise"})
+    bayes_limit = True
 
     def __init__(
         self, n: int = 10000, proposal: str = "optimal", resample_below: float = 0.5
@@ -163,7 +173,8 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
     def _filter(self, system: System, dt: float, y: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Posterior means ``(batch, steps, n_x)`` for ``y: (batch, steps, n_y)``, ``u: (batch, steps, 1)``."""
         context = self.check_fitted()
-        q, r = context.sigma_w**2, context.sigma_v**2
+        measurement = context.measurement
+        q, r = context.sigma_w**2, measurement.variance
         generators = trajectory_generators(context.seed, y[:, 0])
 
         def normals(dim):  # (batch, n, dim), each trajectory from its own generator
@@ -179,14 +190,26 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
                         system, particles, np.broadcast_to(u[:, k - 1], (batch, self.n)), dt
                     )
                     observed = y[:, k, None, :]
-                    if self.proposal == "optimal":
+                    present = np.isfinite(y[:, k]).all(axis=-1)[:, None]  # (batch, 1)
+                    if self.proposal == "optimal" and present.any():
                         sample, log_ratio = optimal_proposal(
-                            system, mean, observed, q, r, normals(system.n_x), normals(system.n_y)
+                            system,
+                            mean,
+                            np.where(present[..., None], observed, 0.0),
+                            q,
+                            r,
+                            normals(system.n_x),
+                            normals(system.n_y),
                         )
+                        if not present.all():  # (draws only then: the stream stays v1's)
+                            transition = mean + np.sqrt(q) * normals(system.n_x)
+                            sample = np.where(present[..., None], sample, transition)
+                            log_ratio = np.where(present, log_ratio, 0.0)
                     else:
                         sample, log_ratio = mean + np.sqrt(q) * normals(system.n_x), 0.0
                     particles = system.constrain(sample)
-                    log_likelihood = gaussian_log_density(observed - system.h(particles), r)
+                    log_likelihood = measurement.log_density(observed, system.h(particles))
+                    log_likelihood = np.where(present, log_likelihood, 0.0)
                     log_weights = log_weights + log_likelihood - log_ratio
                 log_weights = log_weights - logsumexp(log_weights, axis=1, keepdims=True)
                 weights = np.exp(log_weights)
@@ -219,7 +242,7 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
         particles = means[:, None, :] + standard @ cholesky.T
         log_proposal = -0.5 * np.sum(standard**2, axis=-1) - np.sum(np.log(np.diag(cholesky)))
         inside = np.all((particles >= context.x0_low) & (particles <= context.x0_high), axis=-1)
-        log_likelihood = gaussian_log_density(y0[:, None, :] - system.h(particles), r)
+        log_likelihood = context.measurement.log_density(y0[:, None, :], system.h(particles))
         return particles, np.where(inside, log_likelihood - log_proposal, -np.inf)
 
     def _resample(self, particles, log_weights, weights, generators):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
-from kkl_bench.estimators.kalman import KalmanBaseline, box_prior
+from kkl_bench.estimators.kalman import KalmanBaseline, box_prior, measurement_covariance
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.protocol.simulate import rk4_step
@@ -52,7 +52,7 @@ class UnscentedKalman(KalmanBaseline):
         kalman_filter.x = mean.copy()
         kalman_filter.P = covariance
         kalman_filter.Q = context.sigma_w**2 * np.eye(system.n_x)
-        kalman_filter.R = context.sigma_v**2 * np.eye(system.n_y)
+        kalman_filter.R = measurement_covariance(context)
         # the first update comes before any predict: its sigma points are the prior's
         kalman_filter.sigmas_f = points.sigma_points(kalman_filter.x, kalman_filter.P)
         return kalman_filter
@@ -60,5 +60,6 @@ class UnscentedKalman(KalmanBaseline):
     def step(self, kalman_filter, u_previous, y):
         if u_previous is not None:
             kalman_filter.predict(u=u_previous)
-        kalman_filter.update(y)
+        if np.isfinite(y).all():
+            kalman_filter.update(y)
         return kalman_filter.x.copy()

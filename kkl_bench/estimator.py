@@ -25,6 +25,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 
 from kkl_bench.cache import default_cache_dir
+from kkl_bench.measurement import FEATURES, MeasurementModel, NoiseLaw
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.system import System
 from kkl_bench.training import TrainingData
@@ -53,6 +54,13 @@ class FitContext:
         task, given only to estimators that declare ``uses_logged_data``, else None. The
         plant differs from ``system`` (the nominal model) and from what ``training``
         simulates; see ``docs/protocol.md`` section 7.5.
+    measurement: how the states are observed (:mod:`kkl_bench.measurement`): the sensor
+        (already in ``system.h`` and ``system.h_jacobian``), the sampling (``y`` is NaN at
+        the samples not observed), the noise law (``log_density``, ``variance``; its scale
+        is ``sigma_v``). None (default): the protocol's, ``h(x)`` plus Gaussian noise at
+        every sample. Differs from it on a track fitted per task (``hard``) only.
+    x0_box: ``(low, high)``, each ``(n_x,)``: the box initial states come from, where it
+        is not the system's (a ``+truth`` fit on ``far-init``); None (default): the system's.
     """
 
     system: System
@@ -67,16 +75,30 @@ class FitContext:
     cache_dir: Path = field(default_factory=default_cache_dir)
     logged_data: Trajectories | None = None
     device: str = "cpu"
+    measurement: MeasurementModel | None = None
+    x0_box: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __post_init__(self) -> None:
+        if self.measurement is None:
+            object.__setattr__(
+                self, "measurement", MeasurementModel(noise=NoiseLaw(sigma=self.sigma_v))
+            )
+        elif self.measurement.sigma != self.sigma_v:
+            raise ValueError(
+                f"FitContext: the measurement model's noise scale {self.measurement.sigma!r} "
+                f"is not sigma_v {self.sigma_v!r}"
+            )
 
     @property
     def x0_low(self) -> np.ndarray:
-        """``system.x0_low``: the lower corner ``(n_x,)`` of the box initial states come from."""
-        return self.system.x0_low
+        """The lower corner ``(n_x,)`` of the box initial states come from (``system.x0_low``
+        unless ``x0_box`` says otherwise)."""
+        return self.system.x0_low if self.x0_box is None else self.x0_box[0]
 
     @property
     def x0_high(self) -> np.ndarray:
-        """``system.x0_high``: the upper corner ``(n_x,)`` of that box."""
-        return self.system.x0_high
+        """The upper corner ``(n_x,)`` of that box."""
+        return self.system.x0_high if self.x0_box is None else self.x0_box[1]
 
 
 class NotFittedError(RuntimeError):
@@ -101,11 +123,33 @@ class Estimator(ABC):
         On the ``mismatch`` track such an estimator is fitted a second time per true
         plant, with its logged data, and published as a row of its own
         (``<name>+logged``).
+    supported_measurements: the ways in which ``FitContext.measurement`` may differ from
+        the protocol's that the estimator handles: any of ``"sensor"`` (a sensor in
+        ``system.h``), ``"sampling"`` (NaN measurements between observed samples) and
+        ``"noise"`` (a non-Gaussian law). Default none: on a task that needs another,
+        its cells are recorded as ``unsupported`` with :meth:`unsupported_reason`.
+    bayes_limit: whether the estimator approximates the exact posterior mean (the
+        particle filter). On a track whose tasks differ from the model it is fitted
+        with (noise, initial box), it is also fitted with each task's truth and
+        published as ``<name>+truth``: the limit no estimator can beat there.
     """
 
     name: ClassVar[str] = ""
     uses_seed: ClassVar[bool] = True
     uses_logged_data: ClassVar[bool] = False
+    supported_measurements: ClassVar[frozenset[str]] = frozenset()
+    bayes_limit: ClassVar[bool] = False
+
+    @classmethod
+    def unsupported_reason(cls, measurement: MeasurementModel) -> str | None:
+        """Why the estimator cannot run on ``measurement``, or None if it can."""
+        missing = [f for f in FEATURES if f in measurement.features - cls.supported_measurements]
+        if not missing:
+            return None
+        return (
+            f"handles no measurement model with another {' or '.join(missing)} than the "
+            f"protocol's (needs: {measurement.describe()})"
+        )
 
     def fit(self, context: FitContext) -> Self:
         """Prepare for ``context.system``; the default only records the context."""

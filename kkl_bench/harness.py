@@ -11,7 +11,12 @@ Estimators that do not depend on the seed run with the first seed only. On
 a track whose plant differs from the nominal model (``mismatch``), an
 estimator that declares ``uses_logged_data`` is also fitted once per true
 plant with the data logged on it, and scored on that plant's tasks as the
-row ``<name>+logged``: the one exception to fitting once. An
+row ``<name>+logged``. On a track fitted per task (``hard``), every
+estimator is fitted once per measurement model instead, under its own name;
+an estimator that declares ``bayes_limit`` is also fitted with the truth of
+the generalization tracks' tasks, as ``<name>+truth``. These are the only
+exceptions to fitting once. An estimator that cannot handle a task's
+measurement model gets ``unsupported`` cells with its reason and no fit. An
 estimator that raises, or returns the wrong shape, produces an ``error``
 cell and the run goes on.
 """
@@ -41,7 +46,7 @@ from kkl_bench.results import (
     write_cell,
 )
 from kkl_bench.scoring import score
-from kkl_bench.spec import RunSpec, fit_context_for_row
+from kkl_bench.spec import RunSpec, fit_context_for_row, fit_groups, truth_groups
 from kkl_bench.task import Task, make_test_set, stream_fingerprint
 from kkl_bench.tracks import Plant
 
@@ -53,6 +58,7 @@ class RunSummary:
     scored: list[CellResult] = field(default_factory=list)
     cached: list[CellResult] = field(default_factory=list)
     failed: list[CellResult] = field(default_factory=list)
+    unsupported: list[CellResult] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -87,17 +93,34 @@ def _error_text(error: BaseException) -> str:
 def run_system(
     spec: RunSpec, estimator_name: str, system: str, tasks: Iterable[Task], seed: int
 ) -> Iterator[CellResult]:
-    """Fit ``estimator_name`` (a row name: an estimator, a variant, or ``<name>+logged``) on
-    ``system`` with ``seed`` once and score it on each task, yielding cells.
+    """Fit ``estimator_name`` (a row name: an estimator, a variant, ``<name>+logged`` or
+    ``<name>+truth``) on ``system`` with ``seed`` once and score it on each task, yielding
+    cells.
 
     Each cell is written to ``spec.results_dir`` before it is yielded.
     """
-    estimator = variants.build(variants.split_logged(estimator_name)[0])
+    estimator = variants.build(variants.split_row(estimator_name)[0])
     tasks = list(tasks)
+    context = fit_context_for_row(spec, estimator_name, system, tasks, seed)
+    reason = estimator.unsupported_reason(context.measurement)
+    if reason is not None:
+        for task in tasks:
+            cell = _cell(
+                spec,
+                estimator_name,
+                estimator.get_params(),
+                task,
+                seed,
+                status="unsupported",
+                error=reason,
+            )
+            write_cell(spec.results_dir, cell)
+            yield cell
+        return
     start = time.perf_counter()
     status.say("fitting")
     try:
-        estimator.fit(fit_context_for_row(spec, estimator_name, system, tasks, seed))
+        estimator.fit(context)
     except Exception as error:
         for task in tasks:
             cell = _cell(
@@ -202,7 +225,7 @@ def _done(spec: RunSpec, estimator: str, task: Task, seed: int) -> CellResult | 
         aside = move_aside(path)
         warnings.warn(f"{error}; moved to {aside.name}, recomputing the cell", stacklevel=2)
         return None
-    if cell.status != "ok":
+    if cell.status != "ok":  # errors are retried; unsupported cells are decided anew (no fit)
         return None
     if cell.stream_fingerprint != stream_fingerprint(task, cell.n_test):
         warnings.warn(
@@ -239,19 +262,33 @@ def plan(spec: RunSpec) -> tuple[list[Job], list[CellResult]]:
 
 
 def rows_and_tasks(spec: RunSpec, estimator: str, system: str) -> list[tuple[str, list[Task]]]:
-    """The result rows ``estimator`` fills on ``system`` and each row's tasks: its own on
-    every selected task, then, if it uses logged data, ``<name>+logged`` on the tasks of
-    each true plant (one fit per plant)."""
+    """The fits ``estimator`` makes on ``system``: each result row with the tasks of one fit.
+
+    Its own row on every selected task, one fit per group of :func:`~kkl_bench.spec.fit_groups`
+    (one for all tasks but those of a track fitted per task); if it uses logged data,
+    ``<name>+logged`` on the tasks of each true plant (one fit per plant); if it is a Bayes
+    limit, ``<name>+truth`` on the tasks whose truth differs from the protocol's (one fit
+    per truth). ``estimator`` may name one of those rows (``particle_filter+truth``): its
+    fits only.
+    """
     tasks = spec.tasks(system)
-    rows = [(estimator, tasks)]
-    if estimators.get(variants.base_name(estimator)).uses_logged_data:
+    name, only = variants.split_row(estimator)
+    declared = estimators.get(variants.base_name(name))
+    if only and not (declared.bayes_limit if only == variants.TRUTH else declared.uses_logged_data):
+        kind = "a Bayes limit" if only == variants.TRUTH else "an estimator that uses logged data"
+        raise ValueError(f"row {estimator!r}: {name!r} is not {kind}, so it has no {only} row")
+    rows = [(name, group) for _, group in fit_groups(tasks)]
+    if declared.bayes_limit:
+        rows += [(variants.truth_row(name), group) for _, group in truth_groups(tasks)]
+    if declared.uses_logged_data:
         by_plant: dict[tuple[str, Plant], list[Task]] = {}
         for task in tasks:
             plant = task.definition().plant
             if not plant.nominal:
                 by_plant.setdefault((task.track, plant), []).append(task)
-        rows += [(variants.logged_row(estimator), group) for group in by_plant.values()]
-    return rows
+        rows += [(variants.logged_row(name), group) for group in by_plant.values()]
+    # ``<name>+truth`` or ``<name>+logged`` asked for: that row's fits only
+    return [(row, group) for row, group in rows if not only or row == estimator]
 
 
 def _lost_cells(spec: RunSpec, job: Job, error: BaseException) -> list[CellResult]:
@@ -284,7 +321,8 @@ def run(
     """Run the grid of ``spec``; ``progress(cell, status)`` is called for every cell.
 
     ``status`` is ``"cached"`` (already on disk, skipped), ``"ok"``,
-    ``"diverged"`` (scored, some trajectory diverged) or ``"error"``. Jobs
+    ``"diverged"`` (scored, some trajectory diverged), ``"unsupported"`` (the estimator
+    cannot handle the task's measurement model) or ``"error"``. Jobs
     (estimator x system) run through :func:`kkl_bench.executors.execute`
     with ``jobs``, ``executor`` and ``scheduler``. If a worker dies, every
     finished cell is kept, the others are recorded as errors, and the run
@@ -302,6 +340,9 @@ def run(
         if cell.status == "ok":
             summary.scored.append(cell)
             report(cell, "diverged" if cell.n_diverged else "ok")
+        elif cell.status == "unsupported":
+            summary.unsupported.append(cell)
+            report(cell, "unsupported")
         else:
             summary.failed.append(cell)
             report(cell, "error")

@@ -20,6 +20,7 @@ import functools
 
 import numpy as np
 
+from kkl_bench.measurement import MeasurementModel
 from kkl_bench.protocol import DT, N_SAMPLES
 from kkl_bench.protocol.simulate import Trajectories, simulate
 from kkl_bench.protocol.streams import draw_trajectory, root_seed, trajectory_rng
@@ -63,14 +64,17 @@ def simulate_plant(
     u: np.ndarray,
     process_noise: np.ndarray,
     measurement_noise: np.ndarray,
+    measurement: MeasurementModel | None = None,
 ) -> Trajectories:
     """:func:`~kkl_bench.protocol.simulate.simulate` on the true plant ``model``, read by the
-    plant's sensor: ``y = sensor_gain h(x) + sensor_offset + v`` (shapes as ``simulate``)."""
-    data = simulate(model, x0, u, DT, process_noise, measurement_noise)
-    if plant.sensor_gain == 1.0 and plant.sensor_offset == 0.0:
-        return data
-    y = plant.sensor_gain * model.h(data.x) + plant.sensor_offset + measurement_noise
-    return Trajectories(data.t, data.u, data.x, y)
+    plant's sensor: ``y = sensor_gain s(h(x)) + sensor_offset + v``, with the task's sensor
+    ``s`` and sampling (default: ``s(h) = h``, every sample; shapes as ``simulate``)."""
+    measurement = measurement or MeasurementModel()
+    data = simulate(measurement.system(model), x0, u, DT, process_noise)
+    output = data.y
+    if plant.sensor_gain != 1.0 or plant.sensor_offset != 0.0:
+        output = plant.sensor_gain * output + plant.sensor_offset
+    return Trajectories(data.t, data.u, data.x, measurement.measure(output, measurement_noise))
 
 
 @functools.lru_cache(maxsize=16)

@@ -44,9 +44,10 @@ _PACKAGES = ("kkl-bench", "numpy", "scipy", "filterpy", "pandas", "torch")
 class CellResult:
     """Everything recorded about one scored cell.
 
-    ``status`` is ``"ok"`` (scored; some trajectories may have diverged) or
-    ``"error"`` (the estimator raised or broke the interface; ``error`` says
-    how and the metric fields are empty).
+    ``status`` is ``"ok"`` (scored; some trajectories may have diverged),
+    ``"unsupported"`` (the estimator cannot handle the task's measurement model;
+    ``error`` gives its reason) or ``"error"`` (the estimator raised or broke the
+    interface; ``error`` says how). The metric fields are empty but for ``"ok"``.
     """
 
     estimator: str

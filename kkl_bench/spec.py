@@ -6,10 +6,13 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from kkl_bench import variants
 from kkl_bench.cache import default_cache_dir
 from kkl_bench.devices import check_device
 from kkl_bench.estimator import FitContext
+from kkl_bench.measurement import MeasurementModel
 from kkl_bench.plants import logged_data
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.simulate import Trajectories
@@ -101,20 +104,99 @@ class RunSpec:
         return self.seeds if uses_seed else self.seeds[:1]
 
 
-def make_fit_context(
-    spec: RunSpec, estimator: str, system: str, seed: int, logged_data: Trajectories | None = None
+@dataclass(frozen=True)
+class FitConditions:
+    """What an estimator is told of the tasks it is fitted for, where that is not the
+    protocol's: the measurement model (its noise scale ``sigma_v``) and, for a ``+truth``
+    row, the box the initial states come from (``None``: the system's)."""
+
+    measurement: MeasurementModel
+    x0_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+
+
+PROTOCOL_CONDITIONS = FitConditions(MeasurementModel())
+
+
+def task_conditions(task: Task, with_box: bool = False) -> FitConditions:
+    """The conditions of ``task`` (with its initial box when ``with_box``)."""
+    definition = task.definition()
+    box = None
+    if with_box:
+        low, high = definition.x0_box.for_system(systems.get(task.system)())
+        box = (tuple(np.asarray(low, dtype=float)), tuple(np.asarray(high, dtype=float)))
+    return FitConditions(definition.measurement, box)
+
+
+def fit_groups(tasks: Iterable[Task]) -> list[tuple[FitConditions, list[Task]]]:
+    """``tasks`` grouped by the conditions their estimators are fitted with: the protocol's,
+    except on a track fitted per task (``fitted_per_task``), where each measurement
+    model has its own fit."""
+    groups: dict[FitConditions, list[Task]] = {}
+    for task in tasks:
+        per_task = get_track(task.track).fitted_per_task
+        conditions = task_conditions(task) if per_task else PROTOCOL_CONDITIONS
+        groups.setdefault(conditions, []).append(task)
+    return list(groups.items())
+
+
+def truth_groups(tasks: Iterable[Task]) -> list[tuple[FitConditions, list[Task]]]:
+    """The tasks of a ``+truth`` row, grouped by their truth: those of tracks that test
+    generalization (not fitted per task, nominal plant) whose noise, measurement model or
+    initial box differ from what the protocol's fit is told."""
+    protocol: dict[str, FitConditions] = {}
+    groups: dict[FitConditions, list[Task]] = {}
+    for task in tasks:
+        definition = task.definition()
+        if get_track(task.track).fitted_per_task or not definition.plant.nominal:
+            continue
+        truth = task_conditions(task, with_box=True)
+        if task.system not in protocol:
+            model = systems.get(task.system)()
+            box = (tuple(model.x0_low.astype(float)), tuple(model.x0_high.astype(float)))
+            protocol[task.system] = FitConditions(MeasurementModel(), box)
+        if truth != protocol[task.system]:
+            groups.setdefault(truth, []).append(task)
+    return list(groups.items())
+
+
+def conditioned_context(
+    system: str, seed: int, conditions: FitConditions = PROTOCOL_CONDITIONS, **fields
 ) -> FitContext:
-    """The context ``estimator`` (a name or variant) is fitted with for ``system`` and ``seed``
-    (with ``logged_data``, the trajectories logged on a true plant, if given)."""
-    model = systems.get(system)()
+    """The fit context for ``system`` and ``seed`` under ``conditions``: the model read
+    through their sensor, the training generator simulating their measurement model, the
+    initial box they give; ``fields`` set the rest (budget, cache, ...)."""
+    measurement = conditions.measurement
+    model = measurement.system(systems.get(system)())
+    box = None if conditions.x0_box is None else tuple(map(np.array, conditions.x0_box))
     return FitContext(
         system=model,
         dt=DT,
         n_samples=N_SAMPLES,
         sigma_w=SIGMA_W,
-        sigma_v=SIGMA_V,
-        training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed),
+        sigma_v=measurement.sigma,
+        training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, measurement.sigma, seed, measurement),
         seed=seed,
+        measurement=measurement,
+        x0_box=box,
+        **fields,
+    )
+
+
+def make_fit_context(
+    spec: RunSpec,
+    estimator: str,
+    system: str,
+    seed: int,
+    logged_data: Trajectories | None = None,
+    conditions: FitConditions = PROTOCOL_CONDITIONS,
+) -> FitContext:
+    """The context ``estimator`` (a name or variant) is fitted with for ``system`` and ``seed``
+    in the run ``spec`` (with ``logged_data``, the trajectories logged on a true plant, if
+    given, and the ``conditions`` of the tasks it is fitted for)."""
+    return conditioned_context(
+        system,
+        seed,
+        conditions,
         profile=spec.profile.name,
         budget=spec.profile.budget_for(variants.base_name(estimator)),
         cache_dir=Path(spec.cache_dir),
@@ -134,11 +216,17 @@ def plant_of(tasks: Iterable[Task]) -> tuple[str, Plant]:
 def fit_context_for_row(
     spec: RunSpec, row: str, system: str, tasks: Iterable[Task], seed: int
 ) -> FitContext:
-    """The fit context of result row ``row``: an estimator (variant), or ``<name>+logged``,
-    which also receives the data logged on the plant of ``tasks``."""
-    name, with_logged = variants.split_logged(row)
-    if not with_logged:
-        return make_fit_context(spec, name, system, seed)
-    track, plant = plant_of(tasks)
-    logged = logged_data(system, plant, track, SIGMA_W, SIGMA_V)
-    return make_fit_context(spec, name, system, seed, logged)
+    """The fit context of result row ``row`` for ``tasks``: an estimator (variant), fitted
+    with the conditions of ``tasks`` (:func:`fit_groups`); ``<name>+logged``, which also
+    receives the data logged on the plant of ``tasks``; or ``<name>+truth``, fitted with
+    the truth of ``tasks`` (:func:`truth_groups`)."""
+    tasks = list(tasks)
+    name, suffix = variants.split_row(row)
+    if suffix == variants.LOGGED:
+        track, plant = plant_of(tasks)
+        logged = logged_data(system, plant, track, SIGMA_W, SIGMA_V)
+        return make_fit_context(spec, name, system, seed, logged)
+    groups = truth_groups(tasks) if suffix == variants.TRUTH else fit_groups(tasks)
+    if len(groups) != 1 or len(groups[0][1]) != len(tasks):
+        raise ValueError(f"row {row!r}: the tasks {[str(t) for t in tasks]} need different fits")
+    return make_fit_context(spec, name, system, seed, conditions=groups[0][0])

@@ -59,7 +59,7 @@ class Task:
                 f"task {self.id}: track {track.name!r} covers {', '.join(track.systems)}, "
                 f"not {self.system!r}"
             )
-        return track.task(self.regime)
+        return track.task(self.regime, self.system)
 
     def __str__(self) -> str:
         return self.id
@@ -189,6 +189,7 @@ def _draw(task: Task, n_test: int) -> _Draws:
             definition.sigma_v,
             n_numbers,
             system.n_y,
+            None if definition.measurement.noise.gaussian else definition.measurement.noise.sample,
         )
         for i in range(n_test)
     ]
@@ -216,7 +217,9 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
     """Draw and simulate the first ``n_test`` trajectories of ``task``'s test stream.
 
     Trajectory ``i`` is the same whatever ``n_test`` is (draws: :func:`_draw`). The
-    plant is the task's (:mod:`kkl_bench.plants`): the nominal model but on ``mismatch``.
+    plant is the task's (:mod:`kkl_bench.plants`): the nominal model but on ``mismatch``;
+    so is the measurement model (:mod:`kkl_bench.measurement`): ``y`` is NaN at the
+    samples it does not observe.
     """
     definition = task.definition()
     system = true_plant(task.system, definition.plant, task.track)
@@ -227,7 +230,13 @@ def build_test_set(task: Task, n_test: int) -> TestSet:
     u = regime.signal(t, params)
     with np.errstate(over="ignore", invalid="ignore"):
         data = simulate_plant(
-            system, definition.plant, draws.x0, u, draws.process_noise, draws.measurement_noise
+            system,
+            definition.plant,
+            draws.x0,
+            u,
+            draws.process_noise,
+            draws.measurement_noise,
+            definition.measurement,
         )
     escaped = np.flatnonzero(~np.isfinite(data.x).all(axis=(1, 2)))
     if escaped.size:

@@ -14,6 +14,9 @@ A track file::
     description = "..."
     systems = ["duffing", "vdp"]
     settling = false               # show the settling-time column in its tables
+    fitted_per_task = false        # true: every estimator is fitted for each task's
+                                   # measurement model and noise (the ``hard`` track);
+                                   # false: fitted once with the protocol's, as in the paper
 
     [defaults]                     # any task field below, for every task
     measurement_noise = 0.01       # standard deviation of v_k (the paper's: 0.01)
@@ -24,6 +27,11 @@ A track file::
     plant = {parameters = 0.1, sensor_gain = 1.05, sensor_offset = 0.02}
                                    # the data come from a plant unlike the nominal
                                    # model (see Plant); default: the nominal model
+    measurement = {sensor = "quantized", step = 0.5, observe_every = 5, noise = "student-t", dof = 3}
+                                   # how the state is observed (kkl_bench.measurement):
+                                   # a registered sensor and its parameters, the
+                                   # sampling and the noise law (scale: measurement_noise);
+                                   # default: h(x) + Gaussian noise at every sample
 
     [[task]]
     name = "sinusoid-sigma0.1"     # unique within the track
@@ -48,6 +56,7 @@ from typing import Any
 
 import numpy as np
 
+from kkl_bench.measurement import NOISE_LAWS, MeasurementModel, NoiseLaw, sensors
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.signals import Regime
 from kkl_bench.protocol.streams import PAPER_TRACK
@@ -64,6 +73,7 @@ TASK_FIELDS = (
     "horizon",
     "x0_box",
     "plant",
+    "measurement",
 )
 """Fields every task (and ``[defaults]``, except name and family) may set; the rest go to the family."""
 _NAME = re.compile(r"[a-z0-9][a-z0-9-]*")
@@ -137,6 +147,7 @@ class TaskDefinition:
     horizon: s; the test trajectories have ``n_samples = horizon / DT + 1`` samples.
     x0_box: where initial states are drawn from.
     plant: how the plant making the data differs from the nominal model.
+    measurement: how the states are observed (its noise scale is ``sigma_v``).
     """
 
     name: str
@@ -148,6 +159,19 @@ class TaskDefinition:
     horizon: float = (N_SAMPLES - 1) * DT
     x0_box: X0Box = X0Box()
     plant: Plant = Plant()
+    measurement: MeasurementModel | None = None
+    """None: ``h(x)`` plus Gaussian noise of ``sigma_v`` at every sample."""
+
+    def __post_init__(self) -> None:
+        if self.measurement is None:
+            object.__setattr__(
+                self, "measurement", MeasurementModel(noise=NoiseLaw(sigma=self.sigma_v))
+            )
+        elif self.measurement.sigma != self.sigma_v:
+            raise ValueError(
+                f"task {self.name!r}: the measurement model's noise scale "
+                f"{self.measurement.sigma!r} is not sigma_v {self.sigma_v!r}"
+            )
 
     @property
     def n_samples(self) -> int:
@@ -169,12 +193,21 @@ class Track:
     tasks: tuple[TaskDefinition, ...]
     settling: bool = False
     source: str = ""
+    fitted_per_task: bool = False
+    """Whether estimators are fitted for each task's measurement model (protocol 7.6)."""
+    by_system: tuple[tuple[str, str, TaskDefinition], ...] = ()
+    """``(task, system, definition)`` where a field set by system (``{default = ..,
+    <system> = ..}``) gives that system another definition than ``tasks``'."""
 
     def task_names(self) -> list[str]:
         return [task.name for task in self.tasks]
 
-    def task(self, name: str) -> TaskDefinition:
-        """The task ``name``; the error lists the track's tasks."""
+    def task(self, name: str, system: str | None = None) -> TaskDefinition:
+        """The task ``name`` (for ``system``, where a field is set by system); the error lists
+        the track's tasks."""
+        for task_name, system_name, definition in self.by_system:
+            if (task_name, system_name) == (name, system):
+                return definition
         for task in self.tasks:
             if task.name == name:
                 return task
@@ -193,7 +226,16 @@ def parse_track(text: str, source: str = "<string>") -> Track:
     def fail(where: str, message: str) -> TrackError:
         return TrackError(f"{source}: {where}: {message}")
 
-    known = {"name", "version", "description", "systems", "settling", "defaults", "task"}
+    known = {
+        "name",
+        "version",
+        "description",
+        "systems",
+        "settling",
+        "fitted_per_task",
+        "defaults",
+        "task",
+    }
     for key in table:
         if key not in known:
             raise fail(f"field {key!r}", f"unknown field; a track sets {', '.join(sorted(known))}")
@@ -212,9 +254,10 @@ def parse_track(text: str, source: str = "<string>") -> Track:
                 "field 'systems'",
                 f"unknown system {system!r}; valid systems: {', '.join(systems.names())}",
             )
-    settling = table.get("settling", False)
-    if not isinstance(settling, bool):
-        raise fail("field 'settling'", f"must be true or false, got {settling!r}")
+    flags = {key: table.get(key, False) for key in ("settling", "fitted_per_task")}
+    for key, value in flags.items():
+        if not isinstance(value, bool):
+            raise fail(f"field {key!r}", f"must be true or false, got {value!r}")
     defaults = table.get("defaults", {})
     if not isinstance(defaults, dict):
         raise fail("field 'defaults'", "must be a table")
@@ -229,6 +272,7 @@ def parse_track(text: str, source: str = "<string>") -> Track:
     ):
         raise fail("[[task]]", "a track needs at least one [[task]] table")
     tasks: list[TaskDefinition] = []
+    by_system: list[tuple[str, str, TaskDefinition]] = []
     for number, entry in enumerate(entries, start=1):
         task_name = entry.get("name")
         where = f"task {task_name!r}" if isinstance(task_name, str) else f"[[task]] number {number}"
@@ -239,8 +283,15 @@ def parse_track(text: str, source: str = "<string>") -> Track:
             )
         if task_name in {t.name for t in tasks}:
             raise fail(where, f"duplicate task id {name}/<system>/{task_name}")
+        merged = {**defaults, **entry}
         try:
-            tasks.append(_task(task_name, {**defaults, **entry}, tuple(listed)))
+            tasks.append(_task(task_name, _for_system(merged, None, tuple(listed)), tuple(listed)))
+            for system in listed:
+                definition = _task(
+                    task_name, _for_system(merged, system, tuple(listed)), tuple(listed)
+                )
+                if definition != tasks[-1]:
+                    by_system.append((task_name, system, definition))
         except (TrackError, ValueError, TypeError) as error:
             raise fail(where, str(error)) from None
     return Track(
@@ -249,9 +300,33 @@ def parse_track(text: str, source: str = "<string>") -> Track:
         str(table.get("description", "")),
         tuple(listed),
         tuple(tasks),
-        settling,
+        flags["settling"],
         source,
+        flags["fitted_per_task"],
+        tuple(by_system),
     )
+
+
+def _for_system(
+    entry: Mapping[str, Any], system: str | None, track_systems: tuple[str, ...]
+) -> dict[str, Any]:
+    """``entry`` with every value set by system (a table with a ``default`` key, e.g.
+    ``{default = 0.3, rossler = 3.0}``) replaced by ``system``'s (None: the default)."""
+    resolved = {}
+    for key, value in entry.items():
+        if isinstance(value, dict) and "default" in value:
+            unknown = sorted(set(value) - {"default", *track_systems})
+            if unknown:
+                raise TrackError(
+                    f"field {key!r} is set for {unknown[0]!r}, not a system of this track "
+                    f"({', '.join(track_systems)})"
+                )
+            resolved[key] = value.get(system, value["default"]) if system else value["default"]
+        elif isinstance(value, dict) and key != "x0_box":
+            resolved[key] = _for_system(value, system, track_systems)
+        else:
+            resolved[key] = value
+    return resolved
 
 
 def _number(field: str, value: Any, positive: bool = False, signed: bool = False) -> float:
@@ -303,17 +378,73 @@ def _task(name: str, entry: Mapping[str, Any], track_systems: tuple[str, ...]) -
     reference = entry.get("reference", family)
     if not isinstance(reference, str):
         raise TrackError(f"field 'reference' must be a task name, got {reference!r}")
+    sigma_v = _number("measurement_noise", entry.get("measurement_noise", SIGMA_V))
     return TaskDefinition(
         name=name,
         family=family,
         params=tuple(sorted(params.items())),
         reference=reference,
-        sigma_v=_number("measurement_noise", entry.get("measurement_noise", SIGMA_V)),
+        sigma_v=sigma_v,
         sigma_w=_number("process_noise", entry.get("process_noise", SIGMA_W)),
         horizon=horizon,
         x0_box=_x0_box(entry.get("x0_box", {}), track_systems),
         plant=_plant(entry.get("plant", {})),
+        measurement=_measurement(entry.get("measurement", {}), sigma_v),
     )
+
+
+_MEASUREMENT_FIELDS = (
+    "sensor",
+    "observe_every",
+    "noise",
+    "dof",
+    "outlier_fraction",
+    "outlier_scale",
+)
+
+
+def _measurement(value: Any, sigma_v: float) -> MeasurementModel:
+    """The task's measurement model from its ``measurement`` table (noise scale ``sigma_v``)."""
+    if not isinstance(value, dict):
+        raise TrackError(f"field 'measurement' must be a table, got {value!r}")
+    name = value.get("sensor", "identity")
+    if not isinstance(name, str) or name not in sensors:
+        raise TrackError(
+            f"field 'measurement.sensor': unknown sensor {name!r}; valid sensors: "
+            f"{', '.join(sensors.names())}"
+        )
+    sensor_class = sensors.get(name)
+    sensor_fields = [f.name for f in dataclasses.fields(sensor_class)]
+    sensor_params = {key: v for key, v in value.items() if key not in _MEASUREMENT_FIELDS}
+    unknown = sorted(set(sensor_params) - set(sensor_fields))
+    if unknown:
+        raise TrackError(
+            f"unknown field 'measurement.{unknown[0]}'; valid: "
+            f"{', '.join([*_MEASUREMENT_FIELDS, *sensor_fields])} (sensor {name!r} takes "
+            f"{', '.join(sensor_fields) or 'no parameters'})"
+        )
+    law = value.get("noise", "gaussian")
+    if law not in NOISE_LAWS:
+        raise TrackError(
+            f"field 'measurement.noise': unknown law {law!r}; valid laws: {', '.join(NOISE_LAWS)}"
+        )
+    law_params = {
+        key: _number(f"measurement.{key}", value[key])
+        for key in ("dof", "outlier_fraction", "outlier_scale")
+        if key in value
+    }
+    every = value.get("observe_every", 1)
+    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
+        raise TrackError(
+            f"field 'measurement.observe_every' must be a positive integer, got {every!r}"
+        )
+    try:
+        sensor = sensor_class(
+            **{key: _number(f"measurement.{key}", v) for key, v in sensor_params.items()}
+        )
+        return MeasurementModel(sensor, every, NoiseLaw(law, sigma_v, **law_params))
+    except ValueError as error:
+        raise TrackError(f"field 'measurement': {error}") from None
 
 
 def _plant(value: Any) -> Plant:

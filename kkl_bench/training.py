@@ -12,6 +12,7 @@ import zlib
 
 import numpy as np
 
+from kkl_bench.measurement import MeasurementModel, NoiseLaw
 from kkl_bench.protocol import PROTOCOL_VERSION
 from kkl_bench.protocol.signals import InputFamily
 from kkl_bench.protocol.simulate import Trajectories, simulate
@@ -23,15 +24,24 @@ class TrainingData:
 
     Parameters
     ----------
-    system: the model.
+    system: the model, its output read by the task's sensor (``FitContext.system``).
     dt: sampling step (s).
     n_samples: default samples per trajectory.
-    sigma_w, sigma_v: the protocol's noise levels.
+    sigma_w, sigma_v: the process noise's and the measurement noise's standard deviations.
     seed: the run's seed; every stream below is derived from it.
+    measurement: the sampling and the noise law of the measurements (its sensor is
+        already in ``system``); default: Gaussian noise of ``sigma_v`` at every sample.
     """
 
     def __init__(
-        self, system: System, dt: float, n_samples: int, sigma_w: float, sigma_v: float, seed: int
+        self,
+        system: System,
+        dt: float,
+        n_samples: int,
+        sigma_w: float,
+        sigma_v: float,
+        seed: int,
+        measurement: MeasurementModel | None = None,
     ) -> None:
         self.system = system
         self.dt = dt
@@ -39,6 +49,7 @@ class TrainingData:
         self.sigma_w = sigma_w
         self.sigma_v = sigma_v
         self.seed = seed
+        self.measurement = measurement or MeasurementModel(noise=NoiseLaw(sigma=sigma_v))
 
     def rng(self, stream: str) -> np.random.Generator:
         """A generator for the named stream, e.g. ``"train"`` or ``"validation"``.
@@ -72,7 +83,8 @@ class TrainingData:
         stream: name of the random stream (not ``"test"``).
         n_samples: samples per trajectory (default: the protocol's).
         x0_low, x0_high: ``(n_x,)`` box for initial states (default: the system's x0 box).
-        noise: add the protocol's process and measurement noise.
+        noise: add the process and measurement noise (and leave out the samples the
+            measurement model does not observe: NaN).
 
         Returns
         -------
@@ -87,8 +99,11 @@ class TrainingData:
         high = self.system.x0_high if x0_high is None else np.asarray(x0_high, dtype=float)
         x0 = rng.uniform(low, high, (n, self.system.n_x))
         u = inputs.sample(rng, n, self.dt * np.arange(steps))
-        process_noise = measurement_noise = None
-        if noise:
-            process_noise = self.sigma_w * rng.standard_normal((n, steps - 1, self.system.n_x))
-            measurement_noise = self.sigma_v * rng.standard_normal((n, steps, self.system.n_y))
-        return simulate(self.system, x0, u, self.dt, process_noise, measurement_noise)
+        if not noise:
+            return simulate(self.system, x0, u, self.dt)
+        process_noise = self.sigma_w * rng.standard_normal((n, steps - 1, self.system.n_x))
+        measurement_noise = self.measurement.noise.sample(rng, (n, steps, self.system.n_y))
+        data = simulate(self.system, x0, u, self.dt, process_noise)
+        return Trajectories(
+            data.t, data.u, data.x, self.measurement.measure(data.y, measurement_noise)
+        )

@@ -60,13 +60,15 @@ def parse(name: str) -> tuple[str, dict]:
 
 
 def canonical(name: str) -> str:
-    """The canonical spelling of ``name``: parameters in ``__init__`` order, none if empty."""
+    """The canonical spelling of ``name``: parameters in ``__init__`` order, none if empty
+    (a row suffix, ``+logged`` or ``+truth``, is kept)."""
+    name, suffix = split_row(name.strip())
     base, params = parse(name)
     order = estimators.get(base).param_names()
     if not params:
-        return base
+        return base + suffix
     items = ",".join(f"{key}={params[key]!r}" for key in order if key in params)
-    return f"{base}[{items}]"
+    return f"{base}[{items}]{suffix}"
 
 
 def build(name: str) -> Estimator:
@@ -91,10 +93,29 @@ def split_logged(row: str) -> tuple[str, bool]:
     return row, False
 
 
+TRUTH = "+truth"
+"""Suffix of the row of a Bayes-limit estimator's fits given each task's truth (its noise,
+measurement model and initial box) on a track that tests generalization."""
+
+
+def truth_row(name: str) -> str:
+    """The row name of ``name``'s fits with the task's truth: ``particle_filter+truth``."""
+    return f"{name}{TRUTH}"
+
+
+def split_row(row: str) -> tuple[str, str]:
+    """A row name's estimator and suffix: ``"ukf+logged"`` -> ``("ukf", "+logged")``,
+    ``"ukf"`` -> ``("ukf", "")``."""
+    for suffix in (LOGGED, TRUTH):
+        if row.endswith(suffix):
+            return row[: -len(suffix)], suffix
+    return row, ""
+
+
 def base_name(name: str) -> str:
-    """The estimator a (variant or ``+logged``) row name refers to, read from the name alone
-    (it need not be installed: stored results outlive their plugins)."""
-    match = _NAME.match(split_logged(name.strip())[0])
+    """The estimator a (variant, ``+logged`` or ``+truth``) row name refers to, read from the
+    name alone (it need not be installed: stored results outlive their plugins)."""
+    match = _NAME.match(split_row(name.strip())[0])
     if match is None:
         raise VariantError(
             f"malformed estimator name {name!r}; expected NAME or NAME[key=value,...]"

@@ -17,9 +17,10 @@ DT = 0.05
 
 
 def test_the_built_in_tracks_paper_first():
-    assert list(load_tracks())[:6] == [
+    assert list(load_tracks())[:7] == [
         "paper",
         "far-init",
+        "hard",
         "mismatch",
         "more-systems",
         "noise",

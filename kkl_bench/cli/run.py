@@ -148,7 +148,8 @@ def run_command(args: argparse.Namespace) -> int:
             return 130
     print(
         f"{len(summary.scored)} cells scored, {len(summary.cached)} already done, "
-        f"{len(summary.failed)} failed; results in {spec.results_dir}/{spec.profile.name}/"
+        + (f"{len(summary.unsupported)} unsupported, " if summary.unsupported else "")
+        + f"{len(summary.failed)} failed; results in {spec.results_dir}/{spec.profile.name}/"
         + (f"; {RESUME}" if summary.failed else "")
     )
     return 0 if summary.ok else 1

@@ -318,6 +318,7 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
         "system_params": system.params(),
         "seed": context.seed,
         "config": asdict(config),
+        **context.measurement.cache_entry(),
     }
     cache = CheckpointCache(context.cache_dir)
     with seeded(context.seed):

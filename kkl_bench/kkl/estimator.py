@@ -18,6 +18,10 @@ class KKLEstimator(Estimator):
     KKL plugin of a system and seed) and of the plugin's own second phase.
     """
 
+    supported_measurements = frozenset({"sensor", "noise"})
+    """Trained on the task's sensor and noise (``FitContext.training`` and ``system.h``); the
+    latent observer is driven by a measurement at every sample."""
+
     def fit_report(self) -> dict[str, Any]:
         report = self.model_.report()
         log = getattr(self, "log_", None) or {}

@@ -186,7 +186,7 @@ def fit_sequence_model(
     families, then, if the context has logged data, fine-tune it on them (cached under
     ``description`` plus their fingerprint). Returns the fit report: the training log
     (and the fine-tuning's), with the optimizer steps and samples each spent."""
-    description = {**description, "config": asdict(config)}
+    description = {**description, "config": asdict(config), **context.measurement.cache_entry()}
     log = load_or_train(
         context,
         description,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,11 +95,19 @@ def draw_trajectory(
     sigma_v: float,
     n_numbers: int = N_REGIME_NUMBERS,
     n_y: int = 1,
+    noise_law: Callable[[np.random.Generator, tuple[int, ...]], np.ndarray] | None = None,
 ) -> TrajectoryDraws:
     """Draw one trajectory's randomness in the protocol's order (with one output, the
-    measurement noise is the same numbers as protocol v1's ``(steps,)`` draw)."""
+    measurement noise is the same numbers as protocol v1's ``(steps,)`` draw).
+
+    ``noise_law(rng, shape)`` draws the measurement noise when the task declares a law
+    other than the Gaussian (:meth:`kkl_bench.measurement.NoiseLaw.sample`); by default
+    it is ``sigma_v`` times standard normal numbers."""
     x0 = rng.uniform(x0_low, x0_high, len(x0_low))
     r = rng.random(n_numbers)
     process_noise = sigma_w * rng.standard_normal((steps - 1, len(x0_low)))
-    measurement_noise = sigma_v * rng.standard_normal((steps, n_y))
+    if noise_law is None:
+        measurement_noise = sigma_v * rng.standard_normal((steps, n_y))
+    else:
+        measurement_noise = noise_law(rng, (steps, n_y))
     return TrajectoryDraws(x0, r, process_noise, measurement_noise)
