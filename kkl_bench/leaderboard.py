@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
-from kkl_bench.comparisons import LIMIT
+from kkl_bench.comparisons import LIMIT, TRUTH_LIMIT
 from kkl_bench.report import markdown
 from kkl_bench.report.model import Table
 from kkl_bench.significance import MARGIN
@@ -49,9 +49,10 @@ MARKUP = {
 
 
 def _format_cell(row: pd.Series, markup: dict[str, tuple[str, str]]) -> str:
-    """``RMSE ± std (SMAPE)``, marked; ``diverged (k/n)`` or ``error`` where it applies."""
+    """``RMSE ± std (SMAPE)``, marked; ``diverged (k/n)``, ``unsupported`` or ``error``
+    where it applies."""
     if row["status"] != "ok":
-        return "error"
+        return "unsupported" if row["status"] == "unsupported" else "error"
     if row["n_diverged"]:
         return (
             f"diverged ({row['n_diverged']}/{row['n_test'] * row['n_seeds']}), "
@@ -142,13 +143,17 @@ def _system_groups(summary: pd.DataFrame, settling: bool, systems_per_table: int
 
 
 def best_possible(summary: pd.DataFrame) -> pd.Series:
-    """Per (system, regime): the particle filter's RMSE (the Bayes limit) where it was
-    scored, else the lowest RMSE of the column's rows (the paper's left out)."""
+    """Per (system, regime): the particle filter's RMSE (the Bayes limit; the ``+truth``
+    row's where there is one) where it was scored, else the lowest RMSE of the column's
+    rows (the paper's left out)."""
     ours = summary[(summary["status"] == "ok") & ~summary["estimator"].str.startswith(PAPER_PREFIX)]
     finite = ours[np.isfinite(ours["rmse_mean"])]
     lowest = finite.groupby(["system", "regime"])["rmse_mean"].min()
-    limit = finite[finite["estimator"] == LIMIT].set_index(["system", "regime"])["rmse_mean"]
-    return limit.combine_first(lowest)
+    best = lowest
+    for row in (LIMIT, TRUTH_LIMIT):
+        limit = finite[finite["estimator"] == row].set_index(["system", "regime"])["rmse_mean"]
+        best = limit.combine_first(best)
+    return best
 
 
 def grid_tables(

@@ -150,7 +150,7 @@ def summary_table(
                 "estimator": estimator,
                 "system": system,
                 "regime": regime,
-                "status": "ok" if len(scored) == len(cells) and len(scored) else "error",
+                "status": _status(cells, scored),
                 "n_seeds": len(scored),
                 "n_test": len(rmse_by_seed[0]) if rmse_by_seed else 0,
                 "n_diverged": sum(not math.isfinite(v) for values in rmse_by_seed for v in values),
@@ -182,6 +182,25 @@ def summary_table(
         paper["mark"] = ""
         summary = pd.concat([summary, paper], ignore_index=True)
     return summary
+
+
+def _status(cells: pd.DataFrame, scored: pd.DataFrame) -> str:
+    """A row's status in a cell: ``ok`` when every seed scored, ``unsupported`` when the
+    estimator cannot handle the task, else ``error``."""
+    if len(scored) and len(scored) == len(cells):
+        return "ok"
+    if (cells["status"] == "unsupported").all():
+        return "unsupported"
+    return "error"
+
+
+def unsupported_reasons(summary_cells: pd.DataFrame) -> dict[str, str]:
+    """Row -> the reason its unsupported cells give (the first, of ``summary_cells``: the
+    cells of one track as :func:`~kkl_bench.results.load_results` reads them)."""
+    unsupported = summary_cells[summary_cells["status"] == "unsupported"]
+    return {
+        name: cells["error"].iloc[0] for name, cells in unsupported.groupby("estimator", sort=False)
+    }
 
 
 def _marks(summary: pd.DataFrame, margin: float) -> pd.Series:

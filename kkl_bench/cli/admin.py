@@ -1,5 +1,6 @@
-"""``kkl-bench list``, ``check`` and ``cache``: what is installed, whether a plugin conforms,
-and the trained models on disk."""
+"""``kkl-bench list``, ``check``, ``cache`` and ``headroom``: what is installed, whether a
+plugin conforms, the trained models on disk, and how far a track's tasks put the UKF from
+the Bayes limit."""
 
 from __future__ import annotations
 
@@ -8,10 +9,12 @@ import argparse
 from kkl_bench import variants
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.cli.common import add_cache_argument, names
+from kkl_bench.headroom import headroom
+from kkl_bench.measurement import sensors
 from kkl_bench.registry import estimators, regimes, systems
-from kkl_bench.task import load_profiles
+from kkl_bench.task import Task, load_profiles
 from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
-from kkl_bench.tracks import load_tracks
+from kkl_bench.tracks import get_track, load_tracks
 
 
 def add_parser(commands) -> None:
@@ -37,9 +40,28 @@ def add_parser(commands) -> None:
     )
     check.set_defaults(handler=check_conformance)
 
+    room = commands.add_parser(
+        "headroom",
+        help="UKF against the particle-filter limit on a track's validation streams "
+        "(for choosing a track's settings; never reads a test stream)",
+    )
+    room.add_argument("--track", required=True, metavar="NAME", help="track to measure")
+    room.add_argument("--system", nargs="+", metavar="NAME", help="systems (default: all)")
+    room.add_argument("--regime", nargs="+", metavar="NAME", help="tasks (default: all)")
+    room.add_argument(
+        "--trajectories", type=int, default=4, help="validation trajectories per task (4)"
+    )
+    room.add_argument(
+        "--limit",
+        default="particle_filter[n=2000]",
+        metavar="NAME",
+        help="the limit row's estimator (default: particle_filter[n=2000])",
+    )
+    room.set_defaults(handler=measure_headroom)
+
 
 def list_everything(args: argparse.Namespace) -> int:
-    for registry in (systems, regimes, estimators):
+    for registry in (systems, regimes, sensors, estimators):
         broken = registry.broken()  # imports every plugin: list only what works
         print(f"{registry.kind}s: {', '.join(registry.names())}")
         for name, reason in broken.items():
@@ -79,3 +101,24 @@ def check_conformance(args: argparse.Namespace) -> int:
         passes += error is None
     print(f"{passes} passed, {failures} failed")
     return 1 if failures else 0
+
+
+def measure_headroom(args: argparse.Namespace) -> int:
+    track = get_track(args.track)
+    for name in (args.system or []) + (args.regime or []):
+        if name not in track.systems and name not in track.task_names():
+            raise ValueError(
+                f"{name!r} is neither a system ({', '.join(track.systems)}) nor a task "
+                f"({', '.join(track.task_names())}) of track {track.name!r}"
+            )
+    print(f"{'task':<40} {'UKF':>9} {'limit':>9} {'UKF / limit':>12}")
+    for task_name in args.regime or track.task_names():
+        for system in args.system or track.systems:
+            task = Task(system, task_name, track.version, track.name)
+            result = headroom(task, args.trajectories, args.limit)
+            print(
+                f"{task.id:<40} {result.ukf_rmse:>9.4g} {result.limit_rmse:>9.4g} "
+                f"{result.ratio:>12.3f}",
+                flush=True,
+            )
+    return 0

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import pandas as pd
 
-from kkl_bench.comparisons import calibrated_versus_learned, comparison_cells
+from kkl_bench.comparisons import calibrated_versus_learned, comparison_cells, limit_table
 from kkl_bench.leaderboard import grid_tables, track_summary_table
 from kkl_bench.plants import true_plant
 from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
 from kkl_bench.report.board import Board, long_table
 from kkl_bench.report.model import Figure, Section, Table, Text
 from kkl_bench.scaling import TRACK as SCALING_TRACK
-from kkl_bench.summary import SYSTEM_TITLES, condition
+from kkl_bench.summary import SYSTEM_TITLES, condition, unsupported_reasons
 from kkl_bench.tracks import find_track
 
 SUMMARY_TAB = "tracks compared"
@@ -21,8 +21,11 @@ SUMMARY_TAB = "tracks compared"
 INTRODUCTION = """Every estimator is fitted once, exactly as for the paper's track (sensor
 noise 0.01, the paper's x0 boxes, its own training inputs), and scored on
 each track's test sets as well: the tracks test generalization, never
-retraining. The one exception is a `+logged` row of the `mismatch` track:
-the estimator fitted again per true plant, with the data logged on it.
+retraining. The exceptions: a `+logged` row of the `mismatch` track, the
+estimator fitted again per true plant with the data logged on it; the
+`hard` track, where every estimator is fitted for each task's measurement
+model; and `particle_filter+truth`, the particle filter told each task's
+noise and initial box, the limit of the `noise` and `far-init` tracks.
 Marks and spread read as above."""
 
 RELATIVE = """Per estimator: for every cell of the track, its mean RMSE over the
@@ -33,6 +36,11 @@ these ratios over the track's cells, and in parentheses their median (one
 system can dominate the mean: `docs/protocol.md` section 7.5 on Lorenz with
 its parameters 25 % off). Below 1: better than on the paper track.
 Diverged trajectories are left out of the ratio and counted beside it."""
+
+TRACK_LIMIT_TEXT = """Distance from the Bayes limit on this track: the particle filter's RMSE
+(`particle_filter+truth` where the tasks' noise or initial box differ from what
+the estimators were fitted with; on `hard`, `particle_filter` fitted for each
+task) and each row's RMSE divided by it (1.00: at the limit)."""
 
 CONDITIONS_TEXT = (
     "By condition: the ratio to the estimator's own paper-track RMSE as above, its "
@@ -199,6 +207,18 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
             Text(CONDITIONS_TEXT),
             track_summary_table(grouped, "condition", id=f"track-{name}-conditions"),
         ]
+    limit = limit_table(summary, id=f"limit-{name}")
+    if limit is not None:
+        blocks += [Text(TRACK_LIMIT_TEXT), limit]
+    reasons = unsupported_reasons(board.tables.cells[name])
+    if reasons:
+        blocks.append(
+            Text(
+                "`unsupported`: the estimator cannot handle the task's measurement model "
+                "(no number is scored):\n\n"
+                + "\n".join(f"- `{row}`: {reason}" for row, reason in reasons.items())
+            )
+        )
     calibrated = calibration_table(board.tables.cells[name], name)
     if calibrated is not None:
         blocks += [Text(CALIBRATION_TEXT), calibrated, *versus_blocks(summary, name)]
