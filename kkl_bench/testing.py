@@ -31,11 +31,13 @@ import numpy as np
 
 from kkl_bench import variants
 from kkl_bench.estimator import Estimator, FitContext
+from kkl_bench.measurement import FEATURES, Identity, MeasurementModel, NoiseLaw, Quantized
 from kkl_bench.plants import logged_data
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.streams import sealed_test_streams
 from kkl_bench.registry import regimes, systems
+from kkl_bench.spec import FitConditions, conditioned_context
 from kkl_bench.task import get_profile
 from kkl_bench.tracks import get_track
 from kkl_bench.training import TrainingData
@@ -205,6 +207,39 @@ class Conformance:
             fitted = self.prototype.clone().fit(context)
         assert np.isfinite(self.estimate(fitted)).all(), (
             "estimate has NaN or inf after a fit with logged data"
+        )
+
+    def check_handles_the_measurement_models_it_declares(self) -> None:
+        """``supported_measurements`` names only known aspects, and on a measurement model
+        with all of them (a quantizer of step 0.05, every third sample, Student-t noise
+        with 3 degrees of freedom) the estimator fits and its estimates are finite."""
+        declared = type(self.prototype).supported_measurements
+        unknown = sorted(declared - set(FEATURES))
+        assert not unknown, f"supported_measurements names {unknown}; valid: {', '.join(FEATURES)}"
+        if not declared:
+            return
+        measurement = MeasurementModel(
+            Quantized(0.05) if "sensor" in declared else Identity(),
+            3 if "sampling" in declared else 1,
+            NoiseLaw("student-t", SIGMA_V, dof=3.0) if "noise" in declared else NoiseLaw(),
+        )
+        context = conditioned_context(
+            self.context.system.name,
+            0,
+            FitConditions(measurement),
+            profile="quick",
+            budget=self.context.budget,
+            cache_dir=self.fresh_cache(),
+        )
+        data = context.training.simulate(
+            regimes.get("sinusoid")(), CHECK_BATCH, stream="conformance", n_samples=CHECK_STEPS
+        )
+        with sealed_test_streams():
+            fitted = self.prototype.clone().fit(context)
+            x_hat = np.asarray(fitted.estimate(data.t, data.y, data.u), dtype=float)
+        assert np.isfinite(x_hat).all(), (
+            f"estimate has NaN or inf under a measurement model it declares it handles "
+            f"({measurement.describe()})"
         )
 
     def check_does_not_read_test_sets(self) -> None:
