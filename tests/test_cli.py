@@ -87,7 +87,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
         (["check", "nope"], "unknown estimator 'nope'"),
         (
             ["run", "--estimator", "ekf", "--track", "noisy"],
-            "unknown track 'noisy'; valid tracks: paper, far-init, mismatch, more-systems, noise, ood-inputs",
+            "unknown track 'noisy'; valid tracks: paper, far-init, hard, mismatch, more-systems, noise, ood-inputs",
         ),
     ],
 )
@@ -127,7 +127,7 @@ def test_check_command_passes_for_a_builtin_on_a_two_and_a_three_state_system(ca
     assert main(["check", "ekf"]) == 0
     out = capsys.readouterr().out
     assert "PASS duffing check_causal" in out and "PASS lorenz check_causal" in out
-    assert "FAIL" not in out and out.endswith("18 passed, 0 failed\n")
+    assert "FAIL" not in out and out.endswith("20 passed, 0 failed\n")
 
 
 class TwoStatesOnly(Estimator):
