@@ -155,8 +155,9 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
 
     def _analysis(self, system: System, ensemble: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The inflated analysis of the trajectories whose measurement ``y: (batch, n_y)``
-        is present; the others keep their forecast."""
-        observed = np.isfinite(y).all(axis=-1)
+        is present; the others keep their forecast (as does an ensemble that blew up: its
+        estimate is NaN from then on)."""
+        observed = np.isfinite(y).all(axis=-1) & np.isfinite(ensemble).all(axis=(1, 2))
         if not observed.any():
             return ensemble
         updated = ensemble.copy()

@@ -194,3 +194,14 @@ def test_headroom_measures_the_ukf_against_the_limit_on_validation_streams(capsy
     assert line[0] == "hard/duffing/quantized-square@v1"
     ukf, limit, ratio = map(float, line[1:])
     assert ratio == pytest.approx(ukf / limit, rel=1e-3)
+
+
+def test_an_ensemble_that_blew_up_is_reported_as_diverged_not_raised():
+    from kkl_bench.spec import conditioned_context as context_for
+
+    enkf = variants.build("enkf[inflation=1.0]").fit(context_for("duffing", 0))
+    ensemble = np.zeros((2, 24, 2))
+    ensemble[0, 3, 1] = np.inf
+    ensemble[1] = np.random.default_rng(0).normal(size=(24, 2))
+    updated = enkf._analysis(enkf.context_.system, ensemble, np.array([[0.1], [0.2]]))
+    assert np.isinf(updated[0]).any() and np.isfinite(updated[1]).all()
