@@ -38,7 +38,7 @@ from scipy.optimize import least_squares
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.protocol.simulate import Trajectories, rk4_step
-from kkl_bench.protocol.system import System
+from kkl_bench.protocol.system import ReadThrough, System
 
 CONSTRAINT_MARGIN = 30.0
 """A state component within this many process-noise deviations of where the system's
@@ -46,32 +46,19 @@ constraint acts (Rossler's ``x3`` near 0) gives no one-step residual: its next v
 may have been reflected, which biases a least-squares fit (Rossler's ``b`` by +50 %)."""
 
 
-class CalibratedSystem(System):
+class CalibratedSystem(ReadThrough):
     """``model`` (a system with fitted parameters) read by the sensor
     ``y = gain h(x) + offset``; everything else is ``model``'s."""
 
     def __init__(self, model: System, gain: float, offset: float) -> None:
-        self.model, self.gain, self.offset = model, gain, offset
-        self.name = model.name
-        self.state_names = model.state_names
-        self.g = model.g
-        self.x0_low, self.x0_high = model.x0_low, model.x0_high
-        self.n_y = model.n_y
-
-    def f(self, x):
-        return self.model.f(x)
-
-    def f_jacobian(self, x):
-        return self.model.f_jacobian(x)
+        super().__init__(model)
+        self.gain, self.offset = gain, offset
 
     def h(self, x):
         return self.gain * self.model.h(x) + self.offset
 
     def h_jacobian(self, x):
         return self.gain * self.model.h_jacobian(x)
-
-    def constrain(self, x):
-        return self.model.constrain(x)
 
     def params(self):
         return {**self.model.params(), "sensor_gain": self.gain, "sensor_offset": self.offset}

@@ -25,7 +25,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 
 from kkl_bench.cache import default_cache_dir
-from kkl_bench.measurement import FEATURES, MeasurementModel, NoiseLaw
+from kkl_bench.measurement import FEATURES, MeasurementModel, with_scale
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.system import System
 from kkl_bench.training import TrainingData
@@ -79,15 +79,8 @@ class FitContext:
     x0_box: tuple[np.ndarray, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
-        if self.measurement is None:
-            object.__setattr__(
-                self, "measurement", MeasurementModel(noise=NoiseLaw(sigma=self.sigma_v))
-            )
-        elif self.measurement.sigma != self.sigma_v:
-            raise ValueError(
-                f"FitContext: the measurement model's noise scale {self.measurement.sigma!r} "
-                f"is not sigma_v {self.sigma_v!r}"
-            )
+        measurement = with_scale(self.measurement, self.sigma_v, "FitContext")
+        object.__setattr__(self, "measurement", measurement)
 
     @property
     def x0_low(self) -> np.ndarray:

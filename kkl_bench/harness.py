@@ -90,6 +90,17 @@ def _error_text(error: BaseException) -> str:
     return "".join(traceback.format_exception(error)).strip()
 
 
+def _unscored(
+    spec: RunSpec, row: str, estimator, tasks: list[Task], seed: int, outcome: str, error: str
+) -> Iterator[CellResult]:
+    """A cell of status ``outcome`` with ``error`` for each task, written, then yielded: what
+    a job records when its estimator is not fitted (unsupported) or its fit failed."""
+    for task in tasks:
+        cell = _cell(spec, row, estimator.get_params(), task, seed, status=outcome, error=error)
+        write_cell(spec.results_dir, cell)
+        yield cell
+
+
 def run_system(
     spec: RunSpec, estimator_name: str, system: str, tasks: Iterable[Task], seed: int
 ) -> Iterator[CellResult]:
@@ -104,36 +115,15 @@ def run_system(
     context = fit_context_for_row(spec, estimator_name, system, tasks, seed)
     reason = estimator.unsupported_reason(context.measurement)
     if reason is not None:
-        for task in tasks:
-            cell = _cell(
-                spec,
-                estimator_name,
-                estimator.get_params(),
-                task,
-                seed,
-                status="unsupported",
-                error=reason,
-            )
-            write_cell(spec.results_dir, cell)
-            yield cell
+        yield from _unscored(spec, estimator_name, estimator, tasks, seed, "unsupported", reason)
         return
     start = time.perf_counter()
     status.say("fitting")
     try:
         estimator.fit(context)
     except Exception as error:
-        for task in tasks:
-            cell = _cell(
-                spec,
-                estimator_name,
-                estimator.get_params(),
-                task,
-                seed,
-                status="error",
-                error=f"fit failed: {_error_text(error)}",
-            )
-            write_cell(spec.results_dir, cell)
-            yield cell
+        error_text = f"fit failed: {_error_text(error)}"
+        yield from _unscored(spec, estimator_name, estimator, tasks, seed, "error", error_text)
         return
     fit_time = time.perf_counter() - start
     report = estimator.fit_report()

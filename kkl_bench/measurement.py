@@ -32,7 +32,7 @@ import numpy as np
 from scipy import special
 
 from kkl_bench.protocol import SIGMA_V
-from kkl_bench.protocol.system import System
+from kkl_bench.protocol.system import ReadThrough, System
 from kkl_bench.registry import Registry
 
 sensors: Registry = Registry("sensor", "kkl_bench.sensors")
@@ -327,27 +327,27 @@ class MeasurementModel:
         return ", ".join([*parts, f"noise {self.noise.describe()}"])
 
 
-class SensedSystem(System):
-    """A system whose output is a sensor's reading of another system's: ``s(h(x))``.
+def with_scale(
+    measurement: MeasurementModel | None, sigma_v: float, owner: str
+) -> MeasurementModel:
+    """``measurement``, or the protocol's with noise scale ``sigma_v`` if None; a model whose
+    scale is not ``sigma_v`` is refused (``owner`` names what declared both)."""
+    if measurement is None:
+        return MeasurementModel(noise=NoiseLaw(sigma=sigma_v))
+    if measurement.sigma != sigma_v:
+        raise ValueError(
+            f"{owner}: the measurement model's noise scale {measurement.sigma!r} is not "
+            f"sigma_v {sigma_v!r}"
+        )
+    return measurement
 
-    Everything but ``h`` and ``h_jacobian`` is the wrapped model's.
-    """
+
+class SensedSystem(ReadThrough):
+    """A system whose output is a sensor's reading of another system's: ``s(h(x))``."""
 
     def __init__(self, model: System, sensor: Sensor) -> None:
-        self.model = model
+        super().__init__(model)
         self.sensor = sensor
-        self.name = model.name
-        self.state_names = model.state_names
-        self.g = model.g
-        self.x0_low = model.x0_low
-        self.x0_high = model.x0_high
-        self.n_y = model.n_y
-
-    def f(self, x):
-        return self.model.f(x)
-
-    def f_jacobian(self, x):
-        return self.model.f_jacobian(x)
 
     def h(self, x):
         return self.sensor(self.model.h(x))
@@ -355,12 +355,3 @@ class SensedSystem(System):
     def h_jacobian(self, x):
         slope = self.sensor.slope(self.model.h(x))
         return slope[..., :, None] * self.model.h_jacobian(x)
-
-    def constrain(self, x):
-        return self.model.constrain(x)
-
-    def params(self):
-        return self.model.params()
-
-    def __getattr__(self, name: str):  # anything else a system declares (e.g. its ring)
-        return getattr(self.__dict__["model"], name)

@@ -56,7 +56,7 @@ from typing import Any
 
 import numpy as np
 
-from kkl_bench.measurement import NOISE_LAWS, MeasurementModel, NoiseLaw, sensors
+from kkl_bench.measurement import NOISE_LAWS, MeasurementModel, NoiseLaw, sensors, with_scale
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.signals import Regime
 from kkl_bench.protocol.streams import PAPER_TRACK
@@ -163,15 +163,8 @@ class TaskDefinition:
     """None: ``h(x)`` plus Gaussian noise of ``sigma_v`` at every sample."""
 
     def __post_init__(self) -> None:
-        if self.measurement is None:
-            object.__setattr__(
-                self, "measurement", MeasurementModel(noise=NoiseLaw(sigma=self.sigma_v))
-            )
-        elif self.measurement.sigma != self.sigma_v:
-            raise ValueError(
-                f"task {self.name!r}: the measurement model's noise scale "
-                f"{self.measurement.sigma!r} is not sigma_v {self.sigma_v!r}"
-            )
+        measurement = with_scale(self.measurement, self.sigma_v, f"task {self.name!r}")
+        object.__setattr__(self, "measurement", measurement)
 
     @property
     def n_samples(self) -> int:

@@ -96,6 +96,38 @@ class System(ABC):
         return f"{type(self).__name__}({params})"
 
 
+class ReadThrough(System, ABC):
+    """Another system's dynamics read through an output of its own: subclasses implement
+    :meth:`h` and :meth:`h_jacobian` from ``self.model``'s; everything else (``f``, its
+    Jacobian, the constraint, the parameters, the x0 box, any attribute the model
+    declares) is ``model``'s."""
+
+    def __init__(self, model: System) -> None:
+        self.model = model
+        self.name = model.name
+        self.state_names = model.state_names
+        self.g = model.g
+        self.x0_low, self.x0_high = model.x0_low, model.x0_high
+        self.n_y = model.n_y
+
+    def f(self, x):
+        return self.model.f(x)
+
+    def f_jacobian(self, x):
+        return self.model.f_jacobian(x)
+
+    def constrain(self, x):
+        return self.model.constrain(x)
+
+    def params(self):
+        return self.model.params()
+
+    def __getattr__(self, name: str):  # anything else the model declares (e.g. its ring)
+        if "model" not in self.__dict__:  # being copied or unpickled: not set up yet
+            raise AttributeError(name)
+        return getattr(self.__dict__["model"], name)
+
+
 class MeasureOneState(System, ABC):
     """A system whose output is one state component, ``y = x[measured]``."""
 
