@@ -101,14 +101,11 @@ RATIO_CAP = 100.0
 """Largest RMSE ratio the heat maps' colour scale distinguishes."""
 
 
-def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
-    """Heat map of each estimator's mean RMSE over the UKF's per cell (log colour scale).
-
-    ``summary`` holds one track's cells; ``title`` prefixes the figure's title.
-    """
-    plt = pyplot()
-    from matplotlib.colors import LogNorm
-
+def relative_ratios(
+    summary: pd.DataFrame,
+) -> tuple[list[str], list[tuple[str, str]], np.ndarray]:
+    """The estimators, the (system, regime) cells and ``(estimators, cells)`` ratios of each
+    estimator's mean RMSE to the UKF's (NaN where either is missing or the UKF diverged)."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
     regimes = task_order(ours)
     systems = [s for s in SYSTEM_TITLES if s in set(ours["system"])]
@@ -122,7 +119,21 @@ def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
     for i, name in enumerate(names):
         for j, (system, regime) in enumerate(cells):
             if (name, system, regime) in table.index and (REFERENCE, system, regime) in table.index:
-                ratios[i, j] = table[name, system, regime] / table[REFERENCE, system, regime]
+                reference = table[REFERENCE, system, regime]
+                if np.isfinite(reference) and reference > 0:  # no ratio to a diverged UKF
+                    ratios[i, j] = table[name, system, regime] / reference
+    return names, cells, ratios
+
+
+def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
+    """Heat map of each estimator's mean RMSE over the UKF's per cell (log colour scale).
+
+    ``summary`` holds one track's cells; ``title`` prefixes the figure's title.
+    """
+    plt = pyplot()
+    from matplotlib.colors import LogNorm
+
+    names, cells, ratios = relative_ratios(summary)
     finite = ratios[np.isfinite(ratios)]
     figure, axis = plt.subplots(
         figsize=(2.5 + 0.62 * len(cells), 2.2 + 0.42 * len(names)), constrained_layout=True

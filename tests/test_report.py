@@ -89,3 +89,20 @@ def test_a_section_added_to_the_board_reaches_the_readme_and_the_page(monkeypatc
     page = (tmp_path / "board" / "index.html").read_text()
     assert "## A new table" in readme and "| answer |      42 |" in readme
     assert "<h2>A new table</h2>" in page and '<td class="num" data-value="42.0">42</td>' in page
+
+
+def test_no_ratio_is_drawn_against_a_diverged_ukf():
+    from kkl_bench.figures import relative_ratios
+
+    summary = pd.DataFrame(
+        {
+            "estimator": ["ukf", "ekf", "ukf", "ekf"],
+            "system": ["duffing"] * 4,
+            "regime": ["zero", "zero", "square", "square"],
+            "rmse_mean": [math.inf, 0.2, 0.1, 0.3],
+            "track": ["paper"] * 4,
+        }
+    )
+    names, cells, ratios = relative_ratios(summary)
+    assert names == ["ekf", "ukf"] and cells == [("duffing", "zero"), ("duffing", "square")]
+    assert math.isnan(ratios[0, 0]) and ratios[0, 1] == pytest.approx(3.0)
