@@ -119,10 +119,16 @@ def relative_ratios(
     for i, name in enumerate(names):
         for j, (system, regime) in enumerate(cells):
             if (name, system, regime) in table.index and (REFERENCE, system, regime) in table.index:
-                reference = table[REFERENCE, system, regime]
-                if np.isfinite(reference) and reference > 0:  # no ratio to a diverged UKF
-                    ratios[i, j] = table[name, system, regime] / reference
+                ratios[i, j] = over_reference(
+                    table[name, system, regime], table[REFERENCE, system, regime]
+                )
     return names, cells, ratios
+
+
+def over_reference(rmse: float, reference: float) -> float:
+    """``rmse / reference``, or NaN where the reference (the UKF) diverged or is missing: no
+    row is infinitely better than a UKF that lost a trajectory."""
+    return rmse / reference if np.isfinite(reference) and reference > 0 else math.nan
 
 
 def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):

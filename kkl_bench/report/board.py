@@ -179,7 +179,9 @@ def long_table(summary: pd.DataFrame, name: str, settling: bool = False) -> Tabl
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)].reset_index(drop=True)
     reference = ours[ours["estimator"] == figures.REFERENCE].set_index(["system", "regime"])
     ours["relative"] = [
-        row.rmse_mean / reference["rmse_mean"].get((row.system, row.regime), math.nan)
+        figures.over_reference(
+            row.rmse_mean, reference["rmse_mean"].get((row.system, row.regime), math.nan)
+        )
         for row in ours.itertuples()
     ]
     columns = RESULT_COLUMNS | (SETTLING_COLUMNS if settling else {})
