@@ -45,13 +45,17 @@ VERSION = 2
 class RecurrentObserver(nn.Module):
     """Standardize ``(y, u)``, run the recurrent cell, read out standardized ``x``.
 
-    ``forward(yu, state)``: ``yu: (batch, steps, n_y + 1)`` in physical units,
+    ``forward(yu, state)``: ``yu: (batch, steps, n_in)`` in physical units (``n_y + 1``
+    channels, and the channel marking measured samples if ``observed_channel``),
     ``state`` the cell's hidden state or None (zeros); returns ``x_hat:
     (batch, steps, n_x)`` in physical units and the final hidden state.
     """
 
-    def __init__(self, n_in: int, n_x: int, hidden: int, layers: int, cell: str) -> None:
+    def __init__(
+        self, n_in: int, n_x: int, hidden: int, layers: int, cell: str, observed_channel: bool
+    ) -> None:
         super().__init__()
+        self.observed_channel = observed_channel
         self.cell = CELLS[cell](n_in, hidden, num_layers=layers, batch_first=True)
         self.readout = nn.Linear(hidden, n_x)
         for name, size in (("in", n_in), ("out", n_x)):
@@ -86,9 +90,9 @@ class GRUObserver(Estimator):
 
     name = "gru_observer"
     uses_logged_data = True
-    supported_measurements = frozenset({"sensor", "noise"})
-    """Trained on the task's sensor and noise (``FitContext.training``); driven by a
-    measurement at every sample."""
+    supported_measurements = frozenset({"sensor", "sampling", "noise"})
+    """Trained on the task's measurement model (``FitContext.training``); under a sparse
+    sampling it reads the last measurement held and a channel marking the measured samples."""
 
     def __init__(self, cell: str = "gru") -> None:
         self.cell = cell
@@ -98,9 +102,15 @@ class GRUObserver(Estimator):
             raise ValueError(f"unknown cell {self.cell!r}; valid cells: {', '.join(CELLS)}")
         config = from_budget(RecurrentConfig, context)
         system = context.system
+        sparse = "sampling" in context.measurement.features
         with seeded(context.seed):
             network = RecurrentObserver(
-                system.n_y + 1, system.n_x, config.rnn_hidden, config.rnn_layers, self.cell
+                system.n_y + 1 + sparse,
+                system.n_x,
+                config.rnn_hidden,
+                config.rnn_layers,
+                self.cell,
+                observed_channel=sparse,
             )
         description = {
             "kind": KIND,
@@ -117,7 +127,7 @@ class GRUObserver(Estimator):
     def estimate(self, t, y, u):
         self.check_fitted()
         with torch.inference_mode():
-            x_hat, _ = self.network_(inputs(y, u))
+            x_hat, _ = self.network_(inputs(y, u, self.network_.observed_channel))
         return x_hat.double().numpy()
 
     def fit_report(self):

@@ -10,7 +10,7 @@ Trans. Signal Processing 70 (2022), architecture 1. Each step::
               F3 = x_{k-1|k-1} - x_{k-2|k-2}              forward-evolution difference
               F4 = x_{k-1|k-1} - x_{k-1|k-2}              forward-update difference
     gain      K_k = FC(GRU(FC([F1, F2, F3, F4])))          (n_x, n_y)
-    update    x_{k|k} = x_{k|k-1} + K_k F2
+    update    x_{k|k} = x_{k|k-1} + K_k F2                 (at the samples measured)
 
 The GRU's state carries what a Kalman filter keeps in its covariances. The
 filter starts at the centre of the x0 box (``x_{0|-1}``) with zero
@@ -58,13 +58,23 @@ class KalmanNetFilter(nn.Module):
     """The filter as a sequence network (the interface of :mod:`kkl_bench.kkl.sequence`).
 
     ``forward(yu, state)``: ``yu: (batch, steps, n_y + 1)`` measurements and held
-    inputs; ``state`` None (start at ``t = 0``) or the tuple a previous call
-    returned; returns ``x_hat: (batch, steps, n_x)`` and the final state.
+    inputs, then, if ``observed_channel``, the channel marking the samples measured
+    (elsewhere ``y`` is the last measurement held, and the innovation is not applied);
+    ``state`` None (start at ``t = 0``) or the tuple a previous call returned; returns
+    ``x_hat: (batch, steps, n_x)`` and the final state.
     """
 
-    def __init__(self, system: System, dt: float, prior_mean: torch.Tensor, hidden: int) -> None:
+    def __init__(
+        self,
+        system: System,
+        dt: float,
+        prior_mean: torch.Tensor,
+        hidden: int,
+        observed_channel: bool,
+    ) -> None:
         super().__init__()
         self.system, self.dt = system, dt
+        self.observed_channel = observed_channel
         n_x, n_y = system.n_x, system.n_y
         self.input = nn.Sequential(nn.Linear(2 * n_y + 2 * n_x, hidden), nn.ReLU())
         self.gru = nn.GRUCell(hidden, hidden)
@@ -119,6 +129,8 @@ class KalmanNetFilter(nn.Module):
                 )
                 prior = rk4_step(system, posterior, previous_u, self.dt)
             innovation = y - system.h(prior)
+            if self.observed_channel:
+                innovation = innovation * yu[:, k, n_y + 1 :]
             features = torch.cat(
                 [
                     (y - previous_y) / self.dy_scale,
@@ -144,16 +156,20 @@ class KalmanNet(Estimator):
 
     name = "kalmannet"
     uses_logged_data = True
-    supported_measurements = frozenset({"sensor", "noise"})
-    """Trained on the task's sensor and noise (``FitContext.training``); driven by a
-    measurement at every sample."""
+    supported_measurements = frozenset({"sensor", "sampling", "noise"})
+    """Trained on the task's measurement model (``FitContext.training``); under a sparse
+    sampling the update is applied at the measured samples only."""
 
     def fit(self, context: FitContext):
         config = from_budget(RecurrentConfig, context)
         system = context.system
         with seeded(context.seed):
             network = KalmanNetFilter(
-                system, context.dt, torch.as_tensor(box_prior(context)[0]), config.rnn_hidden
+                system,
+                context.dt,
+                torch.as_tensor(box_prior(context)[0]),
+                config.rnn_hidden,
+                observed_channel="sampling" in context.measurement.features,
             )
         description = {
             "kind": KIND,
@@ -171,7 +187,7 @@ class KalmanNet(Estimator):
     def estimate(self, t, y, u):
         self.check_fitted()
         with thread_limit(1), torch.inference_mode():
-            x_hat, _ = self.network_(inputs(y, u))
+            x_hat, _ = self.network_(inputs(y, u, self.network_.observed_channel))
         return x_hat.double().numpy()
 
     def fit_report(self):

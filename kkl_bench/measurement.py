@@ -327,6 +327,23 @@ class MeasurementModel:
         return ", ".join([*parts, f"noise {self.noise.describe()}"])
 
 
+def held(y: np.ndarray) -> np.ndarray:
+    """The measurements with the last one held over the samples that have none.
+
+    The zero-order hold a digital observer running faster than its sensor applies
+    (the learned rows' reading of a sparse sampling, protocol 7.6). ``y: (batch,
+    steps, n_y)``, NaN where not observed; returns the same shape, ``y`` itself when
+    every sample is present. Samples before a trajectory's first measurement stay NaN
+    (every sampling here observes sample 0).
+    """
+    missing = np.isnan(y)
+    if not missing.any():
+        return y
+    last = np.where(missing, 0, np.arange(y.shape[1])[:, None])
+    np.maximum.accumulate(last, axis=1, out=last)
+    return np.take_along_axis(y, last, axis=1)
+
+
 def with_scale(
     measurement: MeasurementModel | None, sigma_v: float, owner: str
 ) -> MeasurementModel:

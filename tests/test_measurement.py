@@ -4,11 +4,16 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
+from kkl_bench.estimators.kalmannet import KalmanNetFilter
 from scipy import integrate
 
-from kkl_bench import variants
+from kkl_bench import registry, variants
+from kkl_bench.estimator import Estimator
 from kkl_bench.harness import RunSpec, rows_and_tasks, run
-from kkl_bench.measurement import MeasurementModel, NoiseLaw, Quantized, Saturating
+from kkl_bench.kkl.latent import LatentObserver, latent_matrices
+from kkl_bench.kkl.sequence import inputs
+from kkl_bench.measurement import MeasurementModel, NoiseLaw, Quantized, Saturating, held
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.results import load_results
 from kkl_bench.spec import PROTOCOL_CONDITIONS, conditioned_context, fit_context_for_row
@@ -151,11 +156,23 @@ def test_the_ekf_only_predicts_where_the_measurement_is_missing():
         assert np.isfinite(estimate).all(), name
 
 
-def test_a_learned_estimator_without_sparse_sampling_gets_unsupported_cells(
-    sensing_track, tmp_path
+class EverySampleOnly(Estimator):
+    """A plugin that needs a measurement at every sample: the box centre, always."""
+
+    supported_measurements = frozenset({"sensor", "noise"})
+
+    def estimate(self, t, y, u):
+        context = self.check_fitted()
+        centre = (context.x0_low + context.x0_high) / 2
+        return np.broadcast_to(centre, (len(y), len(t), len(centre))).copy()
+
+
+def test_an_estimator_without_sparse_sampling_gets_unsupported_cells(
+    sensing_track, register_estimator, tmp_path
 ):
+    register_estimator("every_sample_only", EverySampleOnly)
     spec = RunSpec(
-        ("gru_observer",),
+        ("every_sample_only",),
         ("duffing",),
         ("all-three",),
         get_profile("quick"),
@@ -167,6 +184,52 @@ def test_a_learned_estimator_without_sparse_sampling_gets_unsupported_cells(
     cell = load_results(tmp_path / "results").iloc[0]
     assert cell["status"] == "unsupported"
     assert "another sampling than the protocol's (needs: sensor quantized" in cell["error"]
+
+
+def test_held_keeps_the_last_measurement_over_the_missing_samples():
+    nan = np.nan
+    y = np.array([[[1.0, 10.0], [nan, nan], [nan, nan], [2.0, 20.0], [nan, nan]]])
+    expected = [[[1.0, 10.0], [1.0, 10.0], [1.0, 10.0], [2.0, 20.0], [2.0, 20.0]]]
+    assert held(y).tolist() == expected
+    complete = np.ones((2, 3, 1))
+    assert held(complete) is complete
+    assert np.isnan(held(np.array([[[nan], [3.0], [nan]]]))[0, 0, 0])  # nothing to hold yet
+
+
+def test_sequence_inputs_mark_the_measured_samples():
+    y = np.array([[[1.0], [np.nan], [np.nan], [4.0]]])
+    u = np.arange(4.0).reshape(1, 4, 1)
+    yu = inputs(y, u, observed_channel=True).numpy()
+    assert yu[0].tolist() == [[1, 0, 1], [1, 1, 0], [1, 2, 0], [4, 3, 1]]
+    assert inputs(y, u, observed_channel=False).shape == (1, 4, 2)
+
+
+def test_kalmannet_runs_the_open_loop_model_between_measurements():
+    system = registry.systems.get("duffing")()
+    network = KalmanNetFilter(system, 0.05, torch.zeros(2), 8, observed_channel=True)
+    with torch.no_grad():  # a gain large enough that an update would show
+        network.output[-1].bias.fill_(0.5)
+    y = np.full((2, 7, 1), np.nan)
+    y[:, ::3] = [[[0.3]], [[-0.2]]]
+    u = np.full((2, 7, 1), 0.1)
+    with torch.no_grad():
+        x_hat = network(inputs(y, u, observed_channel=True))[0].double()
+    for k in (1, 2, 4, 5):
+        step = rk4_step(system, x_hat[:, k - 1], torch.full((2,), 0.1), 0.05)
+        assert torch.allclose(x_hat[:, k], step, atol=1e-5)
+    for k in (3, 6):
+        step = rk4_step(system, x_hat[:, k - 1], torch.full((2,), 0.1), 0.05)
+        assert not torch.allclose(x_hat[:, k], step, atol=1e-3)
+
+
+def test_a_latent_observer_is_driven_by_the_held_measurement():
+    observer = LatentObserver(*latent_matrices(np.array([1.0, 2.0, 3.0])), 0.05)
+    y = np.sin(np.arange(40.0) / 5).reshape(1, 40, 1)
+    sparse = np.where((np.arange(40) % 4 == 0)[None, :, None], y, np.nan)
+    z = observer.run(sparse)
+    assert np.isfinite(z).all()
+    assert np.array_equal(z, observer.run(held(sparse)))
+    assert not np.allclose(z, observer.run(y))
 
 
 def test_headroom_measures_the_ukf_against_the_limit_on_validation_streams(capsys):

@@ -19,6 +19,7 @@ import numpy as np
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.latent import LatentObserver
+from kkl_bench.measurement import held
 from kkl_bench.protocol.metrics import steady_state_start
 from kkl_bench.protocol.signals import InputFamily
 
@@ -78,6 +79,7 @@ def observer_data(
         if count
     ]
     x, y, u = (np.concatenate([getattr(part, name) for part in parts]) for name in ("x", "y", "u"))
+    y = held(y)
     return ObserverData(x, observer.run(y), y, u)
 
 

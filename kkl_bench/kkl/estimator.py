@@ -18,9 +18,9 @@ class KKLEstimator(Estimator):
     KKL plugin of a system and seed) and of the plugin's own second phase.
     """
 
-    supported_measurements = frozenset({"sensor", "noise"})
-    """Trained on the task's sensor and noise (``FitContext.training`` and ``system.h``); the
-    latent observer is driven by a measurement at every sample."""
+    supported_measurements = frozenset({"sensor", "sampling", "noise"})
+    """Trained on the task's measurement model (``FitContext.training`` and ``system.h``);
+    under a sparse sampling the latent observer is driven by the last measurement held."""
 
     def fit_report(self) -> dict[str, Any]:
         report = self.model_.report()

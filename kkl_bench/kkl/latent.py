@@ -18,6 +18,8 @@ from collections.abc import Callable
 import numpy as np
 from scipy.linalg import expm
 
+from kkl_bench.measurement import held
+
 
 def spread_eigenvalues(n_z: int, slowest: float, fastest: float) -> np.ndarray:
     """``n_z`` distinct rates, geometrically spaced from ``slowest`` to ``fastest`` (1/s)."""
@@ -81,12 +83,15 @@ class LatentObserver:
     def run(
         self, y: np.ndarray, injection: Callable[[int, np.ndarray], np.ndarray] | None = None
     ) -> np.ndarray:
-        """Latent trajectories ``(batch, steps, n_z)`` driven by ``y: (batch, steps, n_y)``.
+        """Latent trajectories ``(batch, steps, n_z)`` driven by ``y: (batch, steps, n_y)``;
+        samples with no measurement (NaN) are driven by the last one, held
+        (:func:`~kkl_bench.measurement.held`).
 
         ``injection(k, z_k)``, if given, returns ``phi_k: (batch, n_z)``, held
         over ``[t_k, t_{k+1})``; it sees only ``z_k`` (and whatever up to
         sample k its owner knows), so the recursion stays causal.
         """
+        y = held(y)
         z = np.empty((y.shape[0], y.shape[1], self.n_z))
         z[:, 0] = self.initial_state(y[:, 0])
         drive = y[:, :-1] @ self.gamma0.T + np.diff(y, axis=1) @ self.gamma1.T

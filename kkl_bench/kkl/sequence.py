@@ -14,7 +14,9 @@ A network here is an ``nn.Module`` with
   ``(batch, steps, n_x)`` (``(x_hat - out_mean) / out_scale``) and its final
   state (a tensor or a tuple of tensors; None starts at ``t = 0``);
 - ``forward(yu, state) -> (x_hat, state)`` in physical units;
-- buffers ``out_mean``, ``out_scale``: ``(n_x,)``.
+- buffers ``out_mean``, ``out_scale``: ``(n_x,)``;
+- ``observed_channel``: whether ``yu`` ends with the channel marking the
+  measured samples (:func:`inputs`; True when the task's sampling is sparse).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from kkl_bench.kkl.gain import simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.phase2 import load_or_train
+from kkl_bench.measurement import held
 from kkl_bench.protocol.metrics import rmse
 from kkl_bench.registry import regimes
 
@@ -66,9 +69,15 @@ HELD_OUT_EVERY = 5
 """Every fifth logged trajectory is held out to validate the fine-tuning."""
 
 
-def inputs(y: np.ndarray, u: np.ndarray) -> torch.Tensor:
-    """``(batch, steps, n_y + 1)`` float32 network inputs from ``y`` and ``u``."""
-    return torch.as_tensor(np.concatenate([y, u], axis=-1), dtype=torch.float32)
+def inputs(y: np.ndarray, u: np.ndarray, observed_channel: bool) -> torch.Tensor:
+    """Float32 network inputs ``(batch, steps, n_y + 1)`` from ``y`` and ``u``: the last
+    measurement held where ``y`` is NaN (:func:`~kkl_bench.measurement.held`) and ``u``;
+    with ``observed_channel``, a last channel (``n_y + 2`` in all) that is 1 at the
+    samples measured and 0 where the measurement was held."""
+    parts = [held(y), u]
+    if observed_channel:
+        parts.append(~np.isnan(y[..., :1]))
+    return torch.as_tensor(np.concatenate(parts, axis=-1), dtype=torch.float32)
 
 
 def train_windows(
@@ -124,7 +133,7 @@ def _train_nominal(context: FitContext, network: nn.Module, config, description)
     """Train ``network`` on the training families; the training log with its validation RMSE."""
     families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
     x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
-    yu, x = inputs(y, u), torch.as_tensor(x, dtype=torch.float32)
+    yu, x = inputs(y, u, network.observed_channel), torch.as_tensor(x, dtype=torch.float32)
     network.set_normalization(yu, x)
     losses = train_windows(
         network, yu, x, config, context.seed, f"{context.system.name}: {description['kind']}"
@@ -141,7 +150,7 @@ def _train_nominal(context: FitContext, network: nn.Module, config, description)
 def _validation_rmse(network: nn.Module, y, u, x) -> float:
     """Mean RMSE of ``network`` on ``y, u: (n, steps, .)`` against ``x: (n, steps, n_x)``."""
     with torch.no_grad():
-        x_hat, _ = network(inputs(y, u))
+        x_hat, _ = network(inputs(y, u, network.observed_channel))
     return float(rmse(x, to_numpy(x_hat)).mean())
 
 
@@ -162,7 +171,7 @@ def _fine_tune(
     tuning = replace(config, rnn_steps=budget.rnn_logged_steps, rnn_lr=budget.rnn_logged_lr)
     losses = train_windows(
         network,
-        inputs(logged.y[~held_out], logged.u[~held_out]),
+        inputs(logged.y[~held_out], logged.u[~held_out], network.observed_channel),
         torch.as_tensor(logged.x[~held_out], dtype=torch.float32),
         tuning,
         context.seed,
