@@ -21,9 +21,8 @@ class AutonomousKKL(KKLEstimator):
     def __init__(self, pde_weight: float = 1.0) -> None:
         self.pde_weight = pde_weight
 
-    def fit(self, context):
+    def fit_model(self, context):
         self.model_ = fit_phase1(context, self.pde_weight)
-        return super().fit(context)
 
     def estimate(self, t, y, u):
         self.check_fitted()

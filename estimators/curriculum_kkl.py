@@ -72,7 +72,7 @@ class CurriculumKKL(KKLEstimator):
     def __init__(self, pde_weight: float = 1.0) -> None:
         self.pde_weight = pde_weight
 
-    def fit(self, context):
+    def fit_model(self, context):
         model = copy.deepcopy(fit_phase1(context, self.pde_weight))
         data_config = from_budget(Phase2Config, context)
         config = from_budget(CurriculumConfig, context)
@@ -86,7 +86,6 @@ class CurriculumKKL(KKLEstimator):
             lambda generator: self._train(context, model, data_config, config, generator),
         )
         self.model_ = model
-        return super().fit(context)
 
     @staticmethod
     def _train(context, model, data_config, config, generator) -> dict:

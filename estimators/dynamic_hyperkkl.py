@@ -81,7 +81,7 @@ class DynamicHyperKKL(KKLEstimator):
         self.chunk = chunk
         self.rank = rank
 
-    def fit(self, context):
+    def fit_model(self, context):
         self.model_, self.config_, self.hyper_, self.log_ = fit_phase2(
             context,
             "kkl-dynamic",
@@ -97,7 +97,6 @@ class DynamicHyperKKL(KKLEstimator):
             ),
             self._train,
         )
-        return super().fit(context)
 
     def _train(self, context, model, config, hyper, generator) -> dict:
         system = context.system

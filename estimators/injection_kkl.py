@@ -161,7 +161,7 @@ class InjectionKKL(KKLEstimator):
         self.pde_weight = pde_weight
         self.adapt = adapt
 
-    def fit(self, context):
+    def fit_model(self, context):
         model = fit_phase1(context, self.pde_weight)
         self.gain_ = 1.0
         if self.adapt:
@@ -176,7 +176,6 @@ class InjectionKKL(KKLEstimator):
             )
             self.gain_ = self.log_["injection_gain"]
         self.model_ = model
-        return super().fit(context)
 
     def estimate(self, t, y, u):
         context = self.check_fitted()

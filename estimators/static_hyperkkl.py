@@ -72,7 +72,7 @@ class StaticHyperKKL(KKLEstimator):
         self.injection_hidden = injection_hidden
         self.guard = guard
 
-    def fit(self, context):
+    def fit_model(self, context):
         self.model_, self.config_, self.injection_, self.log_ = fit_phase2(
             context,
             "kkl-static",
@@ -93,7 +93,6 @@ class StaticHyperKKL(KKLEstimator):
                 "kkl/static/validation",
             )
             self.log_ = {**self.log_, "injection_gain": self.gain_, "gain_selection": scores}
-        return super().fit(context)
 
     @staticmethod
     def _train(context, model, config, injection, generator) -> dict:

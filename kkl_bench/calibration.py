@@ -4,7 +4,9 @@ On the ``mismatch`` track an estimator that uses logged data receives 100
 trajectories logged on the true plant, with their states (protocol section 7.5).
 The model-based filters use them the classical way: keep the nominal model's
 structure, fit its physical parameters and the sensor's gain and offset by
-least squares, and filter with the calibrated model (rows ``ekf+logged``, ...).
+least squares, and filter with the calibrated model (rows ``ekf+logged``, ...);
+the KKL observers train on data the calibrated model simulates
+(:meth:`kkl_bench.training.TrainingData.with_system`).
 
 The loss (:func:`calibrate`) has two blocks of residuals, each scaled by its
 noise level so that both weigh as what they are, standardized errors:
@@ -98,11 +100,14 @@ def calibrate(
 
 
 def calibrated_context(context: FitContext) -> FitContext:
-    """``context`` with its system calibrated on its logged data; unchanged without any."""
+    """``context`` with its system calibrated on its logged data, and its training
+    generator simulating the calibrated system; unchanged without logged data."""
     if context.logged_data is None:
         return context
     fitted = calibrate(context.system, context.logged_data, context.sigma_w, context.sigma_v)
-    return dataclasses.replace(context, system=fitted)
+    return dataclasses.replace(
+        context, system=fitted, training=context.training.with_system(fitted)
+    )
 
 
 def calibration_report(context: FitContext) -> dict:

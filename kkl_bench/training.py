@@ -51,6 +51,20 @@ class TrainingData:
         self.seed = seed
         self.measurement = measurement or MeasurementModel(noise=NoiseLaw(sigma=sigma_v))
 
+    def with_system(self, system: System) -> TrainingData:
+        """The same generator (streams, noise, measurement model) simulating ``system``
+        (e.g. the model calibrated on logged data); streams are keyed by the system's name,
+        so a system of the same name draws the same inputs, initial states and noise."""
+        return TrainingData(
+            system,
+            self.dt,
+            self.n_samples,
+            self.sigma_w,
+            self.sigma_v,
+            self.seed,
+            self.measurement,
+        )
+
     def rng(self, stream: str) -> np.random.Generator:
         """A generator for the named stream, e.g. ``"train"`` or ``"validation"``.
 

@@ -58,3 +58,33 @@ def test_filters_fit_on_the_calibrated_model_only_when_given_logged_data():
     report = variants.build("ekf").fit(logged).fit_report()
     assert report["calibration"]["mu"] == pytest.approx(3.75, rel=0.005)
     assert variants.build("ekf").fit(nominal).fit_report() == {}
+
+
+def test_kkl_observers_train_on_the_calibrated_model_given_logged_data(tmp_path):
+    spec = RunSpec(("autonomous_kkl",), ("vdp",), None, get_profile("quick"), cache_dir=tmp_path)
+    nominal = make_fit_context(spec, "autonomous_kkl", "vdp", 0)
+    declared = get_track("mismatch").task("params25-sinusoid").plant
+    logged = dataclasses.replace(
+        nominal, logged_data=logged_data("vdp", declared, "mismatch", SIGMA_W, SIGMA_V)
+    )
+    from kkl_bench import variants
+
+    fitted = variants.build("autonomous_kkl").fit(logged)
+    context = fitted.check_fitted()
+    assert fitted.fit_report()["calibration"]["mu"] == pytest.approx(3.75, rel=0.005)
+    assert context.training.system is context.system  # training data from the calibrated model
+    assert "calibration" not in variants.build("autonomous_kkl").fit(nominal).fit_report()
+
+
+def test_a_training_generator_for_another_system_of_the_same_name_draws_the_same_streams():
+    spec = RunSpec(("ekf",), ("vdp",), None, get_profile("quick"))
+    training = make_fit_context(spec, "ekf", "vdp", 0).training
+    from kkl_bench.registry import regimes
+
+    family = regimes.get("sinusoid")()
+    same = training.with_system(systems.get("vdp")()).simulate(family, 2, n_samples=20)
+    original = training.simulate(family, 2, n_samples=20)
+    assert (same.x == original.x).all() and (same.u == original.u).all()
+    other = training.with_system(systems.get("vdp")(mu=1.5)).simulate(family, 2, n_samples=20)
+    assert (other.u == original.u).all() and (other.x[:, 0] == original.x[:, 0]).all()
+    assert not (other.x[:, -1] == original.x[:, -1]).all()
