@@ -15,7 +15,8 @@ are multiplied by ``inflation`` (multiplicative inflation of the posterior,
 the convention of DAPPER's ``EnKF('Sqrt', infl=...)``). By default the
 inflation is tuned per system like every other row's free choices: the one
 of :data:`INFLATIONS` with the lowest RMSE over the scored window of forced
-validation trajectories of a training stream (never a test stream). Each
+validation trajectories of a training stream (never a test stream), simulated
+by the model it filters with (the calibrated one for ``enkf+logged``). Each
 member is then propagated by the protocol's transition: the RK4 step with the held input,
 process noise ``N(0, sigma_w^2 I)`` and the system's constraint, as the truth
 is. A sample whose measurement is missing (NaN) is a forecast only. On a task with
@@ -94,7 +95,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             )
 
     def fit(self, context):
-        super().fit(context)
+        context = super().fit(context).check_fitted()  # the calibrated model, given logged data
         self.scores_ = {}
         self.inflation_ = self.inflation
         if self.inflation is None:
