@@ -120,7 +120,10 @@ class Estimator(ABC):
         the protocol's that the estimator handles: any of ``"sensor"`` (a sensor in
         ``system.h``), ``"sampling"`` (NaN measurements between observed samples) and
         ``"noise"`` (a non-Gaussian law). Default none: on a task that needs another,
-        its cells are recorded as ``unsupported`` with :meth:`unsupported_reason`.
+        its cells are recorded as ``unsupported`` with the reason
+        ``unsupported_reason(system, measurement)`` gives; override that classmethod to
+        refuse systems the method cannot express (``ring_observer`` refuses systems
+        without ``System.ring``).
     bayes_limit: whether the estimator approximates the exact posterior mean (the
         particle filter). On a track whose tasks differ from the model it is fitted
         with (noise, initial box), it is also fitted with each task's truth and
@@ -134,8 +137,11 @@ class Estimator(ABC):
     bayes_limit: ClassVar[bool] = False
 
     @classmethod
-    def unsupported_reason(cls, measurement: MeasurementModel) -> str | None:
-        """Why the estimator cannot run on ``measurement``, or None if it can."""
+    def unsupported_reason(cls, system: System, measurement: MeasurementModel) -> str | None:
+        """Why the estimator cannot be fitted for ``system`` observed through
+        ``measurement``, or None if it can. The default: a measurement model that differs
+        from the protocol's in an aspect not in :attr:`supported_measurements`; a plugin
+        that needs a kind of system (a ring, say) adds its own reason."""
         missing = [f for f in FEATURES if f in measurement.features - cls.supported_measurements]
         if not missing:
             return None

@@ -113,7 +113,7 @@ def run_system(
     estimator = variants.build(variants.split_row(estimator_name)[0])
     tasks = list(tasks)
     context = fit_context_for_row(spec, estimator_name, system, tasks, seed)
-    reason = estimator.unsupported_reason(context.measurement)
+    reason = estimator.unsupported_reason(context.system, context.measurement)
     if reason is not None:
         yield from _unscored(spec, estimator_name, estimator, tasks, seed, "unsupported", reason)
         return

@@ -54,14 +54,15 @@ class Conformance:
     ----------
     estimator: registry name or variant (``static_hyperkkl[guard=True]``), or an
         unfitted estimator instance.
-    system: registry name of the system to check on.
+    system: registry name of the system to check on (default: the first of
+        :func:`check_systems`).
     budget: training budget for ``fit`` (default: the quick profile's for this estimator).
     """
 
     def __init__(
         self,
         estimator: str | Estimator,
-        system: str = "duffing",
+        system: str | None = None,
         budget: dict[str, Any] | None = None,
     ) -> None:
         if isinstance(estimator, str):
@@ -72,7 +73,7 @@ class Conformance:
             self.name = type(estimator).__name__
             self.prototype = estimator
             budget_name = self.name
-        model = systems.get(system)()
+        model = systems.get(system or check_systems(self.prototype)[0])()
         self.context = FitContext(
             system=model,
             dt=DT,
@@ -248,7 +249,7 @@ class Conformance:
 
 
 def estimator_checks(
-    estimator: str | Estimator, system: str = "duffing", budget: dict[str, Any] | None = None
+    estimator: str | Estimator, system: str | None = None, budget: dict[str, Any] | None = None
 ) -> Iterator[tuple[str, Callable[[], None]]]:
     """The named checks for ``estimator``; they share one fit."""
     return Conformance(estimator, system, budget).checks()
@@ -259,20 +260,39 @@ CHECK_SYSTEMS = ("duffing", "lorenz")
 states, one with three (a plugin that assumes a state dimension fails one of them)."""
 
 
-def _systems(systems: str | Sequence[str]) -> tuple[str, ...]:
+def check_systems(estimator: str | Estimator) -> tuple[str, ...]:
+    """The systems to check ``estimator`` on by default: those of :data:`CHECK_SYSTEMS` it
+    supports (:meth:`~kkl_bench.estimator.Estimator.unsupported_reason`), or, for a
+    plugin that supports neither (a ring observer), the first two registered systems it
+    supports."""
+    prototype = variants.build(estimator) if isinstance(estimator, str) else estimator
+
+    def supported(name: str) -> bool:
+        return prototype.unsupported_reason(systems.get(name)(), MeasurementModel()) is None
+
+    chosen = tuple(name for name in CHECK_SYSTEMS if supported(name))
+    chosen = chosen or tuple(name for name in systems.names() if supported(name))[:2]
+    if not chosen:
+        raise ValueError(f"{type(prototype).__name__} supports no registered system")
+    return chosen
+
+
+def _systems(estimator: str | Estimator, systems: str | Sequence[str] | None) -> tuple[str, ...]:
+    if systems is None:
+        return check_systems(estimator)
     return (systems,) if isinstance(systems, str) else tuple(systems)
 
 
 def run_checks(
     estimator: str | Estimator,
-    systems: str | Sequence[str] = CHECK_SYSTEMS,
+    systems: str | Sequence[str] | None = None,
     budget: dict[str, Any] | None = None,
 ) -> Iterator[tuple[str, str, BaseException | None]]:
-    """Run every check on each of ``systems`` (one fit per system); yields ``(system, name,
-    None)`` on success, ``(system, name, error)`` on failure. A fit that raises fails
-    every check of its system with that error. An unknown estimator or system raises
-    before any check."""
-    for system in _systems(systems):
+    """Run every check on each of ``systems`` (default :func:`check_systems`; one fit per
+    system); yields ``(system, name, None)`` on success, ``(system, name, error)`` on
+    failure. A fit that raises fails every check of its system with that error. An
+    unknown estimator or system raises before any check."""
+    for system in _systems(estimator, systems):
         for name, check in estimator_checks(estimator, system, budget):
             try:
                 check()
@@ -289,11 +309,11 @@ def describe(error: BaseException) -> str:
 
 def check_estimator(
     estimator: str | Estimator,
-    systems: str | Sequence[str] = CHECK_SYSTEMS,
+    systems: str | Sequence[str] | None = None,
     budget: dict[str, Any] | None = None,
 ) -> None:
-    """Run every check on each of ``systems``; raise one AssertionError listing all
-    failures."""
+    """Run every check on each of ``systems`` (default :func:`check_systems`); raise one
+    AssertionError listing all failures."""
     failures = [
         f"{system}: {name}: {describe(error)}"
         for system, name, error in run_checks(estimator, systems, budget)

@@ -9,7 +9,8 @@ initial box ``[F - 1, F + 1]^n`` surrounds the unstable equilibrium ``x_i = F``,
 as the paper's Lorenz box surrounds the origin; trajectories leave it for the
 chaotic attractor within seconds.
 
-The dimension is part of the name: ``lorenz96-n5``, ``-n10``, ``-n20`` and
+The states sit on a ring (``System.ring``: one state per site, the outputs at
+the even sites), which a local observer can use. The dimension is part of the name: ``lorenz96-n5``, ``-n10``, ``-n20`` and
 ``-n40`` are registered (:func:`lorenz96` makes any other size).
 """
 
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kkl_bench.protocol.system import System
+from kkl_bench.protocol.system import Ring, System
 from kkl_bench.registry import systems
 
 FORCING = 8.0
@@ -37,6 +38,9 @@ class Lorenz96(System):
 
     def params(self):
         return {"n": self.n_x, "F": self.forcing}
+
+    def with_sites(self, sites: int) -> Lorenz96:
+        return lorenz96(sites)(self.forcing)
 
     def f(self, x):
         advection = (x[..., self._next] - x[..., self._before]) * x[..., self._previous]
@@ -75,6 +79,7 @@ def lorenz96(n: int) -> type[Lorenz96]:
         "x0_high": np.full(n, FORCING + 1.0),
         "measured": list(range(0, n, 2)),
         "n_y": len(range(0, n, 2)),
+        "ring": Ring(sites=n, output_sites=tuple(range(0, n, 2))),
         "__doc__": f"Lorenz-96 with {n} states, every other one measured.",
     }
     return type(f"Lorenz96N{n}", (Lorenz96,), attributes)

@@ -58,7 +58,7 @@ def test_quick_profile_for_both_filters_fills_all_sixteen_cells(tmp_path, capsys
     [
         (
             ["run", "--estimator", "ekff"],
-            "unknown estimator 'ekff'; valid estimators: autonomous_kkl, curriculum_kkl, dynamic_hyperkkl, ekf, enkf, gru_observer, injection_kkl, kalmannet, particle_filter, static_hyperkkl, ukf (did you mean 'ekf'?)",
+            "unknown estimator 'ekff'; valid estimators: autonomous_kkl, curriculum_kkl, dynamic_hyperkkl, ekf, enkf, gru_observer, injection_kkl, kalmannet, particle_filter, ring_observer, static_hyperkkl, ukf (did you mean 'ekf'?)",
         ),
         (
             ["run", "--estimator", "static_hyperkkl[gaurd=True]"],

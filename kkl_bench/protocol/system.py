@@ -10,6 +10,7 @@ the analytic Jacobians.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -23,6 +24,31 @@ def stack(components: list[Any]) -> Any:
     import torch  # only reached when the caller passes tensors
 
     return torch.stack(torch.broadcast_tensors(*components), dim=-1)
+
+
+@dataclass(frozen=True)
+class Ring:
+    """How a system's states sit on a ring of identical sites (Lorenz-96): what a local
+    observer needs (``ring_observer``); a system that is not a ring declares none.
+
+    Attributes
+    ----------
+    sites: number of sites; site ``s`` holds states ``s k, ..., s k + k - 1`` with
+        ``k = n_x / sites`` (site-major order), and its neighbours are ``s - 1`` and
+        ``s + 1`` modulo ``sites``.
+    output_sites: ``(n_y,)`` the site each output component measures (at most one
+        output per site).
+    """
+
+    sites: int
+    output_sites: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        if len(set(self.output_sites)) != len(self.output_sites):
+            raise ValueError(f"a ring site has at most one output, got {self.output_sites}")
+        outside = [s for s in self.output_sites if not 0 <= s < self.sites]
+        if outside:
+            raise ValueError(f"output sites {outside} are not among the {self.sites} sites")
 
 
 class System(ABC):
@@ -39,6 +65,8 @@ class System(ABC):
     g: ``(n_x,)`` input direction.
     x0_low, x0_high: ``(n_x,)`` corners of the box initial states are drawn from.
     n_y: number of measured outputs (default 1).
+    ring: the sites the states sit on, if the system is a ring (:class:`Ring`; default
+        None). A ring system also implements :meth:`with_sites`.
     """
 
     name: ClassVar[str]
@@ -47,6 +75,7 @@ class System(ABC):
     x0_low: ClassVar[np.ndarray]
     x0_high: ClassVar[np.ndarray]
     n_y: ClassVar[int] = 1
+    ring: ClassVar[Ring | None] = None
 
     @property
     def n_x(self) -> int:
@@ -91,6 +120,11 @@ class System(ABC):
         """The model's named parameters (for provenance)."""
         return {}
 
+    def with_sites(self, sites: int) -> System:
+        """The same system on a ring of ``sites`` sites (a ring observer trained at one
+        size is applied at another); only a ring system implements it."""
+        raise TypeError(f"{self.name} is not a ring system (it declares no System.ring)")
+
     def __repr__(self) -> str:
         params = ", ".join(f"{key}={value:g}" for key, value in self.params().items())
         return f"{type(self).__name__}({params})"
@@ -109,6 +143,7 @@ class ReadThrough(System, ABC):
         self.g = model.g
         self.x0_low, self.x0_high = model.x0_low, model.x0_high
         self.n_y = model.n_y
+        self.ring = model.ring
 
     def f(self, x):
         return self.model.f(x)
@@ -122,7 +157,7 @@ class ReadThrough(System, ABC):
     def params(self):
         return self.model.params()
 
-    def __getattr__(self, name: str):  # anything else the model declares (e.g. its ring)
+    def __getattr__(self, name: str):  # anything else the model declares
         if "model" not in self.__dict__:  # being copied or unpickled: not set up yet
             raise AttributeError(name)
         return getattr(self.__dict__["model"], name)

@@ -1,0 +1,102 @@
+"""The local ring observer: its ring declaration, equivariance, size independence and training."""
+
+import numpy as np
+import pytest
+import torch
+from kkl_bench.estimators.ring_observer import LocalRingNetwork, RingLayout, RingObserver
+
+from kkl_bench import variants
+from kkl_bench.kkl.sequence import inputs
+from kkl_bench.measurement import MeasurementModel
+from kkl_bench.protocol.system import Ring
+from kkl_bench.registry import regimes, systems
+from kkl_bench.spec import RunSpec, make_fit_context
+from kkl_bench.task import get_profile
+
+
+def network(n: int, observed_channel: bool = False, seed: int = 0) -> LocalRingNetwork:
+    torch.manual_seed(seed)
+    model = systems.get(f"lorenz96-n{n}")() if n in (5, 10, 20, 40) else None
+    model = model or systems.get("lorenz96-n10")().with_sites(n)
+    return LocalRingNetwork(RingLayout(model, 2), 2, 8, 1, observed_channel)
+
+
+def test_lorenz96_declares_its_ring_and_resizes():
+    system = systems.get("lorenz96-n10")()
+    assert system.ring == Ring(sites=10, output_sites=(0, 2, 4, 6, 8))
+    resized = system.with_sites(6)
+    assert resized.name == "lorenz96-n6" and resized.ring.output_sites == (0, 2, 4)
+    with pytest.raises(TypeError, match="duffing is not a ring system"):
+        systems.get("duffing")().with_sites(6)
+    with pytest.raises(ValueError, match="at most one output"):
+        Ring(sites=4, output_sites=(0, 0))
+
+
+def test_the_ring_observer_is_unsupported_on_a_system_without_a_ring():
+    reason = RingObserver.unsupported_reason(systems.get("duffing")(), MeasurementModel())
+    assert "needs a system on a ring" in reason and "duffing declares none" in reason
+    assert RingObserver.unsupported_reason(systems.get("lorenz96-n5")(), MeasurementModel()) is None
+
+
+def test_rotating_the_ring_by_two_sites_rotates_the_estimates():
+    """With the input off, a rotation that maps measured sites to measured sites (two sites)
+    moves every estimate with it: the weights are shared by the sites."""
+    net = network(10)
+    rng = np.random.default_rng(0)
+    y = rng.normal(size=(2, 30, 5))
+    u = np.zeros((2, 30, 1))
+    with torch.no_grad():
+        x_hat = net(inputs(y, u, False))[0].numpy()
+        rotated = net(inputs(np.roll(y, 1, axis=-1), u, False))[0].numpy()
+    assert np.allclose(rotated, np.roll(x_hat, 2, axis=-1), atol=1e-5)
+    assert not np.allclose(x_hat, np.roll(x_hat, 2, axis=-1), atol=1e-3)
+
+
+def test_the_network_has_the_same_parameters_at_every_size_and_runs_at_another():
+    small, large = network(5), network(40)
+    count = [sum(p.numel() for p in net.parameters()) for net in (small, large)]
+    assert count[0] == count[1]
+    moved = small.on(systems.get("lorenz96-n40")())
+    y, u = np.ones((1, 7, 20)), np.ones((1, 7, 1))
+    with torch.no_grad():
+        out = moved(inputs(y, u, False))[0]
+    assert out.shape == (1, 7, 40) and torch.isfinite(out).all()
+    assert moved.cell is small.cell  # the same parameters
+    assert small.layout.sites == 5  # the original keeps its ring
+
+
+def test_the_input_enters_at_the_sites_of_g_only():
+    net = network(10)
+    y = np.zeros((1, 5, 5))
+    features = [net.features(inputs(y, np.full((1, 5, 1), value), False)) for value in (0.0, 1.0)]
+    changed = (features[1] != features[0]).reshape(10, 5, 5, 3).any(dim=(1, 3))
+    # site s sees site 0's input where 0 is within 2 sites of it: s in {8, 9, 0, 1, 2}
+    assert changed.any(dim=1).tolist() == [s in (8, 9, 0, 1, 2) for s in range(10)]
+
+
+def test_trained_at_five_sites_and_applied_at_ten(tmp_path):
+    spec = RunSpec(
+        ("ring_observer",),
+        ("lorenz96-n10", "lorenz96-n5"),
+        None,
+        get_profile("quick"),
+        cache_dir=tmp_path,
+        tracks=("more-systems",),
+    )
+    context = make_fit_context(spec, "ring_observer", "lorenz96-n10", 0)
+    fitted = variants.build("ring_observer[train_sites=5]").fit(context)
+    assert fitted.fit_report()["trained_on"] == "lorenz96-n5"
+    data = context.training.simulate(regimes.get("sinusoid")(), 2, stream="t", n_samples=450)
+    x_hat = fitted.estimate(data.t, data.y, data.u)
+    assert x_hat.shape == data.x.shape and np.isfinite(x_hat).all()
+    # the same model as a fit at five sites (one cache entry)
+    own = make_fit_context(spec, "ring_observer", "lorenz96-n5", 0)
+    at_five = variants.build("ring_observer").fit(own)
+    assert at_five.fit_report()["training_log"] == fitted.fit_report()["training_log"]
+
+
+def test_bad_parameters_name_the_value():
+    with pytest.raises(ValueError, match="radius=0"):
+        RingObserver(radius=0)
+    with pytest.raises(ValueError, match="train_sites=2"):
+        RingObserver(train_sites=2)
