@@ -39,7 +39,7 @@ from kkl_bench.estimator import Estimator
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.protocol.metrics import steady_state_start
 from kkl_bench.protocol.simulate import rk4_step
-from kkl_bench.protocol.system import System
+from kkl_bench.protocol.system import Ring, System
 from kkl_bench.registry import estimators
 
 
@@ -65,6 +65,57 @@ def transform(forecast: np.ndarray, predicted: np.ndarray, y: np.ndarray, r: flo
     return mean + (weights + root) @ anomalies  # W_a is symmetric
 
 
+def local_transform(
+    forecast: np.ndarray, predicted: np.ndarray, y: np.ndarray, r: float, taper: np.ndarray
+) -> np.ndarray:
+    """The LETKF analysis ensemble ``(batch, N, n_x)``: every site's states take the
+    weights of an ETKF analysis of their own, in which measurement ``j`` has the
+    precision ``taper[s, j] / r`` (Hunt, Kostelich and Szunyogh 2007, section 2.3, with
+    the observation error inflated away from the site, "R-localization").
+
+    ``forecast: (batch, N, n_x)`` members with ``n_x = sites k`` states in site-major
+    order, ``predicted: (batch, N, n_y)`` their ``h``, ``y: (batch, n_y)``, ``r`` the
+    measurement noise variance, ``taper: (sites, n_y)`` weights in [0, 1]. With every
+    weight 1 it is :func:`transform`.
+    """
+    batch, members, n_x = forecast.shape
+    sites = taper.shape[0]
+    mean = forecast.mean(axis=1, keepdims=True)
+    anomalies = forecast - mean
+    predicted_mean = predicted.mean(axis=1, keepdims=True)
+    predicted_anomalies = predicted - predicted_mean  # (batch, N, n_y)
+    scaled = predicted_anomalies[:, None] * (taper / r)[None, :, None, :]  # (batch, sites, N, n_y)
+    precision = (members - 1) * np.eye(members) + scaled @ predicted_anomalies[:, None].swapaxes(
+        -1, -2
+    )
+    values, vectors = np.linalg.eigh(precision)  # (batch, sites, N), (batch, sites, N, N)
+    innovation = (y[:, None, :] - predicted_mean)[:, None]  # (batch, 1, 1, n_y)
+    projected = innovation @ scaled.swapaxes(-1, -2)  # (batch, sites, 1, N)
+    weights = ((projected @ vectors) / values[..., None, :]) @ vectors.swapaxes(-1, -2)
+    root = (vectors * np.sqrt((members - 1) / values)[..., None, :]) @ vectors.swapaxes(-1, -2)
+    local = anomalies.reshape(batch, members, sites, -1).transpose(0, 2, 1, 3)  # (b, s, N, k)
+    updated = (weights + root) @ local
+    return mean + updated.transpose(0, 2, 1, 3).reshape(batch, members, n_x)
+
+
+def gaspari_cohn(distance: np.ndarray, half_width: float) -> np.ndarray:
+    """Gaspari and Cohn's compactly supported correlation function (Q. J. R. Meteorol.
+    Soc. 125, 1999, eq. 4.10) at ``distance``: 1 at 0, 0 from ``2 half_width`` on."""
+    z = np.abs(np.asarray(distance, dtype=float)) / half_width
+    near = (((-0.25 * z + 0.5) * z + 0.625) * z - 5 / 3) * z**2 + 1
+    with np.errstate(divide="ignore"):
+        far = ((((z / 12 - 0.5) * z + 0.625) * z + 5 / 3) * z - 5) * z + 4 - 2 / (3 * z)
+    return np.where(z <= 1, near, np.where(z < 2, far, 0.0))
+
+
+def ring_taper(ring: Ring, half_width: float) -> np.ndarray:
+    """``(sites, n_y)``: the Gaspari-Cohn weight of each output for each site, by the
+    distance along the ring between the site and the output's site."""
+    sites = np.arange(ring.sites)[:, None]
+    apart = np.abs(sites - np.asarray(ring.output_sites)[None, :])
+    return gaspari_cohn(np.minimum(apart, ring.sites - apart), half_width)
+
+
 INFLATIONS = (1.0, 1.01, 1.02, 1.05, 1.1)
 """The inflations the default ``enkf`` chooses from."""
 VALIDATION_TRAJECTORIES = 16
@@ -79,14 +130,28 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
     n: ensemble members per trajectory (at least 2).
     inflation: factor on the analysis anomalies after each update (1: none), or None
         (default) to choose it per system on validation trajectories (see the module).
+    localization: None (default) for the global analysis, or the half-width, in sites,
+        of the Gaspari-Cohn taper of a local analysis per site (the LETKF,
+        :func:`local_transform`; measurements 2 half-widths away or more are ignored);
+        only on systems that declare a ring (``System.ring``).
     """
 
     name = "enkf"
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
 
-    def __init__(self, n: int = 24, inflation: float | None = None) -> None:
+    def __init__(
+        self, n: int = 24, inflation: float | None = None, localization: float | None = None
+    ) -> None:
         self.n = n
         self.inflation = inflation
+        self.localization = localization
+        if localization is not None and not (
+            isinstance(localization, int | float) and localization > 0
+        ):
+            raise ValueError(
+                f"enkf: localization={localization!r} must be a positive half-width in "
+                "sites, or None"
+            )
         if not (isinstance(n, int) and n >= 2):
             raise ValueError(f"enkf: n={n!r} must be an integer of at least 2")
         if inflation is not None and not (isinstance(inflation, int | float) and inflation >= 1):
@@ -94,8 +159,21 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
                 f"enkf: inflation={inflation!r} must be a number of at least 1, or None"
             )
 
+    def unsupported_reason(self, system, measurement):
+        if self.localization is not None and system.ring is None:
+            return (
+                f"localizes along a ring (System.ring), and {system.name} declares none; "
+                "the global enkf runs there"
+            )
+        return super().unsupported_reason(system, measurement)
+
     def fit(self, context):
         context = super().fit(context).check_fitted()  # the calibrated model, given logged data
+        self.taper_ = (
+            None
+            if self.localization is None
+            else ring_taper(context.system.ring, self.localization)
+        )
         self.scores_ = {}
         self.inflation_ = self.inflation
         if self.inflation is None:
@@ -115,6 +193,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         return {
             **super().fit_report(),
             "members": self.n,
+            **({"localization": self.localization} if self.localization is not None else {}),
             "inflation": self.inflation_,
             **({"inflation_selection": self.scores_} if self.scores_ else {}),
         }
@@ -162,12 +241,16 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         if not observed.any():
             return ensemble
         updated = ensemble.copy()
-        analysis = transform(
+        arguments = (
             ensemble[observed],
             system.h(ensemble[observed]),
             y[observed],
             self.check_fitted().measurement.variance,
         )
+        if self.taper_ is None:
+            analysis = transform(*arguments)
+        else:
+            analysis = local_transform(*arguments, self.taper_)
         mean = analysis.mean(axis=1, keepdims=True)
         updated[observed] = mean + self.inflation_ * (analysis - mean)
         return updated

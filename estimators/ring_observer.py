@@ -175,8 +175,7 @@ class RingObserver(Estimator):
                 "or None"
             )
 
-    @classmethod
-    def unsupported_reason(cls, system: System, measurement: MeasurementModel) -> str | None:
+    def unsupported_reason(self, system: System, measurement: MeasurementModel) -> str | None:
         if system.ring is None:
             return (
                 f"needs a system on a ring (System.ring: its sites and which are measured); "

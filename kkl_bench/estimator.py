@@ -121,7 +121,7 @@ class Estimator(ABC):
         ``system.h``), ``"sampling"`` (NaN measurements between observed samples) and
         ``"noise"`` (a non-Gaussian law). Default none: on a task that needs another,
         its cells are recorded as ``unsupported`` with the reason
-        ``unsupported_reason(system, measurement)`` gives; override that classmethod to
+        ``unsupported_reason(system, measurement)`` gives; override that method to
         refuse systems the method cannot express (``ring_observer`` refuses systems
         without ``System.ring``).
     bayes_limit: whether the estimator approximates the exact posterior mean (the
@@ -136,13 +136,12 @@ class Estimator(ABC):
     supported_measurements: ClassVar[frozenset[str]] = frozenset()
     bayes_limit: ClassVar[bool] = False
 
-    @classmethod
-    def unsupported_reason(cls, system: System, measurement: MeasurementModel) -> str | None:
+    def unsupported_reason(self, system: System, measurement: MeasurementModel) -> str | None:
         """Why the estimator cannot be fitted for ``system`` observed through
         ``measurement``, or None if it can. The default: a measurement model that differs
         from the protocol's in an aspect not in :attr:`supported_measurements`; a plugin
         that needs a kind of system (a ring, say) adds its own reason."""
-        missing = [f for f in FEATURES if f in measurement.features - cls.supported_measurements]
+        missing = [f for f in FEATURES if f in measurement.features - self.supported_measurements]
         if not missing:
             return None
         return (

@@ -33,9 +33,11 @@ def test_lorenz96_declares_its_ring_and_resizes():
 
 
 def test_the_ring_observer_is_unsupported_on_a_system_without_a_ring():
-    reason = RingObserver.unsupported_reason(systems.get("duffing")(), MeasurementModel())
+    reason = RingObserver().unsupported_reason(systems.get("duffing")(), MeasurementModel())
     assert "needs a system on a ring" in reason and "duffing declares none" in reason
-    assert RingObserver.unsupported_reason(systems.get("lorenz96-n5")(), MeasurementModel()) is None
+    assert (
+        RingObserver().unsupported_reason(systems.get("lorenz96-n5")(), MeasurementModel()) is None
+    )
 
 
 def test_rotating_the_ring_by_two_sites_rotates_the_estimates():
