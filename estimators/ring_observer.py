@@ -1,26 +1,33 @@
-"""Local observer for systems on a ring (Lorenz-96): one recurrent network shared by every site.
+"""Local observer for systems on a ring (Lorenz-96): the model's prediction, corrected by a
+gain that one small recurrent network, shared by every site, learns from its neighbourhood.
 
-Each site ``s`` reads, at every sample, the features of the sites within
-``radius`` of it (``s - radius, ..., s + radius`` modulo the ring): the site's
-measurement (0 at a site without an output), a 0/1 channel marking the
-measured sites (and, under a sparse sampling, the samples measured), and the
-input as it enters the site's states (``g_s u``). A GRU shared by all sites
-maps the history of its neighbourhood's features to the site's states; the
-sites run as one batch. The network therefore has the same parameters at
-every ring size, commutes with the rotations of the ring that keep its
-measurement pattern (and with the input off), costs O(n) per sample, and can
-be trained at one size and applied at another (``train_sites``). The ring is
-the system's declaration (:class:`~kkl_bench.protocol.system.Ring`); on a
-system that declares none the estimator's cells are ``unsupported``.
+Each step, for every site ``s`` (``System.ring``)::
 
-Scalings are pooled over sites (one mean and deviation for every
-measurement, one for every state), so they do not depend on the size either.
-Training is ``gru_observer``'s (:mod:`kkl_bench.kkl.sequence`: truncated
-backpropagation through time on the training families, cached and
-checkpointed) with one change: a step draws ``max(1, ring_site_batch //
-sites)`` trajectories, so that every step sees about the same number of
-site histories at every size and the budget (steps, samples of each site)
-does not grow with the ring.
+    prior       x_{k|k-1} = RK4(x_{k-1|k-1}, u_{k-1})        (the model, O(n))
+    innovation  e_k = y_k - h(x_{k|k-1}), placed at the measured sites (0 elsewhere)
+    features    of the sites within ``radius`` of s: innovation, measured mark, prior
+    gain        K_s = Linear(GRUCell(features, hidden_s))   (per_site x (2 radius + 1))
+    update      x_{k|k}[s] = x_{k|k-1}[s] + K_s e_k[neighbourhood of s]
+
+like KalmanNet's update, but local: the same weights at every site, so the
+network has the same parameters at every ring size, commutes with the
+rotations of the ring that keep its measurement pattern (with the input
+off), costs O(n) per sample, and can be trained at one size and applied at
+another (``train_sites``). The gain starts as nudging: ``NUDGING`` on a
+site's own innovation and 0 elsewhere, so that the untrained filter already
+follows the measured sites instead of the chaotic model's open loop. The
+ring is the system's declaration (:class:`~kkl_bench.protocol.system.Ring`);
+on a system that declares none the estimator's cells are ``unsupported``.
+
+Scalings are pooled over sites (one for every innovation, one for every
+state), so they do not depend on the size either. Training is
+``gru_observer``'s (:mod:`kkl_bench.kkl.sequence`: truncated backpropagation
+through time on the training families, cached and checkpointed) with one
+change: a step draws ``max(1, ring_site_batch // sites)`` trajectories, so
+every step sees about the same number of site histories at every size and
+the budget does not grow with the ring. The filter starts at the x0 box's
+centre and clips its estimates to the training states' mean plus or minus
+10 deviations, as ``kalmannet`` does.
 """
 
 from __future__ import annotations
@@ -29,25 +36,27 @@ import copy
 import dataclasses
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import nn
 
 from kkl_bench.estimator import Estimator, FitContext
+from kkl_bench.executors import thread_limit
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.networks import seeded
 from kkl_bench.kkl.sequence import RecurrentConfig, fit_sequence_model, inputs
 from kkl_bench.measurement import MeasurementModel
 from kkl_bench.protocol import PROTOCOL_ID
+from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
 
 KIND = "ring-observer"
-VERSION = 1
+VERSION = 2
 """Bump when a change to this module changes what a given configuration trains."""
-ESTIMATE_CHUNK = 200
-"""Samples per call of the recurrent network when estimating (bounds the memory of the
-neighbourhood features at large rings; the hidden state is carried across chunks)."""
+NUDGING = 0.5
+"""The untrained gain on a site's own innovation."""
+CLIP_STDS = 10.0
+"""Estimates are kept within the training states' mean +/- this many standard deviations."""
 
 
 @dataclass(frozen=True)
@@ -59,98 +68,115 @@ class RingConfig:
 
 
 class RingLayout:
-    """Where a ring system's outputs and input sit: the index tensors the network gathers with.
-
-    ``system.ring`` must be set; ``per_site`` states per site, ``radius`` sites each side.
-    """
+    """A ring system as the network reads it: the system, its box centre and the index
+    tensors of its sites. ``system.ring`` must be set; ``radius`` sites each side."""
 
     def __init__(self, system: System, radius: int) -> None:
         ring = system.ring
+        self.system = system
         self.sites = ring.sites
         self.per_site = system.n_x // ring.sites
-        self.n_y = system.n_y
         self.output_sites = torch.as_tensor(ring.output_sites)
         self.measured = torch.zeros(ring.sites)
         self.measured[self.output_sites] = 1.0
-        self.g = torch.as_tensor(
-            np.reshape(system.g, (ring.sites, self.per_site)), dtype=torch.float32
-        )
+        self.centre = torch.as_tensor((system.x0_low + system.x0_high) / 2, dtype=torch.float32)
         offsets = torch.arange(-radius, radius + 1)
         self.neighbours = (torch.arange(ring.sites)[:, None] + offsets) % ring.sites
 
+    def around(self, per_site: torch.Tensor) -> torch.Tensor:
+        """``(batch, sites, c)`` -> ``(batch, sites, 2 radius + 1, c)``: each site's neighbourhood."""
+        return per_site[:, self.neighbours]
 
-class LocalRingNetwork(nn.Module):
-    """The shared per-site GRU with pooled scalings (the :mod:`kkl_bench.kkl.sequence` interface).
 
-    ``forward(yu, state)``: ``yu: (batch, steps, n_y + 1)`` (then the channel marking
-    measured samples if ``observed_channel``), ``state`` the GRU's ``(layers, batch *
-    sites, hidden)`` or None; returns ``x_hat: (batch, steps, n_x)`` and the final state.
-    :meth:`on` gives the same network for another ring size.
+class LocalRingFilter(nn.Module):
+    """The filter as a sequence network (the interface of :mod:`kkl_bench.kkl.sequence`).
+
+    ``forward(yu, state)``: ``yu: (batch, steps, n_y + 1)`` measurements and inputs
+    (then the channel marking measured samples if ``observed_channel``); ``state``
+    None (start at ``t = 0``) or ``(posterior (batch, n_x), previous u (batch,),
+    hidden (batch * sites, hidden))``; returns ``x_hat: (batch, steps, n_x)`` and the
+    final state. :meth:`on` gives the same network for another ring.
     """
 
     def __init__(
-        self,
-        layout: RingLayout,
-        radius: int,
-        hidden: int,
-        layers: int,
-        observed_channel: bool,
+        self, layout: RingLayout, dt: float, radius: int, hidden: int, observed_channel: bool
     ) -> None:
         super().__init__()
-        self.layout, self.observed_channel = layout, observed_channel
-        channels = 2 + layout.per_site  # measurement, measured mark, input per state
-        self.cell = nn.GRU(channels * (2 * radius + 1), hidden, layers, batch_first=True)
-        self.readout = nn.Linear(hidden, layout.per_site)
-        for name in ("y_mean", "y_scale", "u_scale", "out_mean", "out_scale"):
+        self.layout, self.dt, self.observed_channel = layout, dt, observed_channel
+        width = 2 * radius + 1
+        channels = 2 + layout.per_site  # innovation, measured mark, prior per state
+        self.cell = nn.GRUCell(channels * width, hidden)
+        self.gain = nn.Linear(hidden, layout.per_site * width)
+        with torch.no_grad():  # start as nudging: NUDGING on the site's own innovation
+            self.gain.weight.mul_(0.01)
+            self.gain.bias.zero_()
+            own = torch.zeros(layout.per_site, width)
+            own[:, radius] = NUDGING
+            self.gain.bias.copy_(own.reshape(-1))
+        for name in ("e_scale", "out_mean", "out_scale"):
             self.register_buffer(name, torch.ones(1))
 
-    def on(self, system: System) -> LocalRingNetwork:
-        """This network (the same parameters and scalings) reading ``system``'s ring."""
+    def on(self, system: System) -> LocalRingFilter:
+        """This network (the same parameters and scalings) on ``system``'s ring."""
         moved = copy.copy(self)  # shares the parameter and buffer dicts; only the layout differs
         moved.layout = RingLayout(system, (self.layout.neighbours.shape[1] - 1) // 2)
         return moved
 
     def set_normalization(self, yu: torch.Tensor, x: torch.Tensor) -> None:
-        """Pooled scalings from training data ``yu: (n, steps, n_y + 1 [+ 1])``, ``x: (n, steps, n_x)``."""
-        n_y = self.layout.n_y
-        self.y_mean.fill_(yu[..., :n_y].mean().item())
-        self.y_scale.fill_(max(yu[..., :n_y].std().item(), 1e-6))
-        self.u_scale.fill_(max(yu[..., n_y].std().item(), 1e-6))
+        """Pooled scalings from training data ``yu: (n, steps, n_y + 1 [+ 1])``,
+        ``x: (n, steps, n_x)``: the states' mean and deviation, and the deviation of the
+        measurements' one-step changes (the innovations' scale)."""
+        n_y = len(self.layout.output_sites)
+        changes = yu[:, 1:, :n_y] - yu[:, :-1, :n_y]
+        self.e_scale.fill_(max(changes.std().item(), 1e-6))
         self.out_mean.fill_(x.mean().item())
         self.out_scale.fill_(max(x.std().item(), 1e-6))
 
-    def features(self, yu: torch.Tensor) -> torch.Tensor:
-        """``(batch * sites, steps, (2 radius + 1) channels)``: each site's neighbourhood."""
-        layout = self.layout
-        batch, steps, _ = yu.shape
-        y = (yu[..., : layout.n_y] - self.y_mean) / self.y_scale
-        value = yu.new_zeros(batch, steps, layout.sites)
-        value[..., layout.output_sites] = y
-        mark = layout.measured.expand(batch, steps, -1)
-        if self.observed_channel:
-            mark = mark * yu[..., -1:]
-            value = value * mark
-        forcing = (yu[..., layout.n_y, None, None] / self.u_scale) * layout.g
-        per_site = torch.cat([value[..., None], mark[..., None], forcing], dim=-1)
-        around = per_site[:, :, layout.neighbours]  # (batch, steps, sites, 2 r + 1, channels)
-        rows = around.reshape(batch, steps, layout.sites, -1).transpose(1, 2)
-        return rows.reshape(batch * layout.sites, steps, -1)
-
     def normalized(self, yu: torch.Tensor, state=None):
-        batch, steps, _ = yu.shape
-        hidden, state = self.cell(self.features(yu), state)
-        out = self.readout(hidden)  # (batch * sites, steps, per_site)
-        out = out.reshape(batch, self.layout.sites, steps, -1).transpose(1, 2)
-        return out.reshape(batch, steps, -1), state
+        x_hat, state = self.forward(yu, state)
+        return (x_hat - self.out_mean) / self.out_scale, state
 
     def forward(self, yu: torch.Tensor, state=None):
-        out, state = self.normalized(yu, state)
-        return self.out_mean + out * self.out_scale, state
+        layout = self.layout
+        system, n_y, sites = layout.system, len(layout.output_sites), layout.sites
+        batch, steps, _ = yu.shape
+        low = self.out_mean - CLIP_STDS * self.out_scale
+        high = self.out_mean + CLIP_STDS * self.out_scale
+        if state is None:
+            posterior = None
+            hidden = yu.new_zeros(batch * sites, self.cell.hidden_size)
+        else:
+            posterior, previous_u, hidden = state
+        estimates = []
+        for k in range(steps):
+            y, u = yu[:, k, :n_y], yu[:, k, n_y]
+            if posterior is None:  # t = 0: the prior is the box centre
+                prior = layout.centre.expand(batch, -1)
+            else:
+                prior = rk4_step(system, posterior, previous_u, self.dt)
+            mark = layout.measured.expand(batch, -1)
+            innovation = yu.new_zeros(batch, sites)
+            innovation[:, layout.output_sites] = (y - system.h(prior)) / self.e_scale
+            if self.observed_channel:
+                mark = mark * yu[:, k, -1:]
+                innovation = innovation * mark
+            standard_prior = ((prior - self.out_mean) / self.out_scale).reshape(batch, sites, -1)
+            features = torch.cat([innovation[..., None], mark[..., None], standard_prior], -1)
+            around = layout.around(features).reshape(batch * sites, -1)
+            hidden = self.cell(around, hidden)
+            gain = self.gain(hidden).reshape(batch, sites, layout.per_site, -1)
+            local = layout.around(innovation[..., None])[..., 0]  # (batch, sites, width)
+            correction = (gain @ local[..., None])[..., 0] * self.e_scale
+            posterior = torch.clamp(prior + correction.reshape(batch, -1), low, high)
+            previous_u = u
+            estimates.append(posterior)
+        return torch.stack(estimates, dim=1), (posterior, previous_u, hidden)
 
 
 @estimators.register("ring_observer")
 class RingObserver(Estimator):
-    """A recurrent network shared by the sites of a ring (see the module doc).
+    """The model's prediction corrected by a local gain shared by the sites of a ring (see
+    the module doc).
 
     Parameters
     ----------
@@ -161,10 +187,10 @@ class RingObserver(Estimator):
 
     name = "ring_observer"
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
-    """Trained on the task's measurement model; under a sparse sampling a site reads its
-    last measurement held and the mark of the samples measured."""
+    """Trained on the task's measurement model; under a sparse sampling the innovation is
+    applied at the samples measured only."""
 
-    def __init__(self, radius: int = 4, train_sites: int | None = None) -> None:
+    def __init__(self, radius: int = 3, train_sites: int | None = None) -> None:
         self.radius = radius
         self.train_sites = train_sites
         if not (isinstance(radius, int) and radius >= 1):
@@ -191,14 +217,13 @@ class RingObserver(Estimator):
         config = dataclasses.replace(
             config, rnn_batch=max(1, ring_config.ring_site_batch // system.ring.sites)
         )
-        sparse = "sampling" in training.measurement.features
         with seeded(training.seed):
-            network = LocalRingNetwork(
+            network = LocalRingFilter(
                 RingLayout(system, self.radius),
+                training.dt,
                 self.radius,
                 config.rnn_hidden,
-                config.rnn_layers,
-                observed_channel=sparse,
+                observed_channel="sampling" in training.measurement.features,
             )
         description = {
             "kind": KIND,
@@ -210,7 +235,8 @@ class RingObserver(Estimator):
             "radius": self.radius,
             "ring": dataclasses.asdict(ring_config),
         }
-        self.report_ = {**fit_sequence_model(training, network, config, description)}
+        with thread_limit(1):
+            self.report_ = fit_sequence_model(training, network, config, description)
         self.report_["trained_on"] = system.name
         self.network_ = network.on(context.system)
         return super().fit(context)
@@ -226,13 +252,9 @@ class RingObserver(Estimator):
 
     def estimate(self, t, y, u):
         self.check_fitted()
-        yu = inputs(y, u, self.network_.observed_channel)
-        state, parts = None, []
-        with torch.inference_mode():
-            for start in range(0, yu.shape[1], ESTIMATE_CHUNK):
-                x_hat, state = self.network_(yu[:, start : start + ESTIMATE_CHUNK], state)
-                parts.append(x_hat)
-        return torch.cat(parts, dim=1).double().numpy()
+        with thread_limit(1), torch.inference_mode():
+            x_hat, _ = self.network_(inputs(y, u, self.network_.observed_channel))
+        return x_hat.double().numpy()
 
     def fit_report(self):
         return self.report_

@@ -11,7 +11,7 @@ chaotic attractor within seconds.
 
 The states sit on a ring (``System.ring``: one state per site, the outputs at
 the even sites), which a local observer can use. The dimension is part of the name: ``lorenz96-n5``, ``-n10``, ``-n20`` and
-``-n40`` are registered (:func:`lorenz96` makes any other size).
+``-n40``, ``-n80`` and ``-n160`` are registered (:func:`lorenz96` makes any other size).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from kkl_bench.protocol.system import Ring, System
 from kkl_bench.registry import systems
 
 FORCING = 8.0
-SIZES = (5, 10, 20, 40)
+SIZES = (5, 10, 20, 40, 80, 160)
 """The registered dimensions (the scaling study's)."""
 
 
@@ -85,6 +85,6 @@ def lorenz96(n: int) -> type[Lorenz96]:
     return type(f"Lorenz96N{n}", (Lorenz96,), attributes)
 
 
-Lorenz96N5, Lorenz96N10, Lorenz96N20, Lorenz96N40 = (
+Lorenz96N5, Lorenz96N10, Lorenz96N20, Lorenz96N40, Lorenz96N80, Lorenz96N160 = (
     systems.register(f"lorenz96-n{n}")(lorenz96(n)) for n in SIZES
 )

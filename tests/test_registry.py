@@ -98,7 +98,8 @@ def test_unknown_name_lists_valid_names_and_suggests():
     with pytest.raises(
         UnknownNameError,
         match=r"unknown system 'lorentz'; valid systems: chua, duffing, fitzhugh_nagumo, lorenz, "
-        r"lorenz96-n5, lorenz96-n10, lorenz96-n20, lorenz96-n40, rossler, vdp "
+        r"lorenz96-n5, lorenz96-n10, lorenz96-n20, lorenz96-n40, lorenz96-n80, lorenz96-n160, "
+        r"rossler, vdp "
         r"\(did you mean 'lorenz'\?\)",
     ):
         systems.get("lorentz")

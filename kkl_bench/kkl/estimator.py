@@ -9,6 +9,9 @@ from kkl_bench.calibration import calibrated_context, calibration_report
 from kkl_bench.estimator import Estimator, FitContext
 
 NOTHING_SPENT = {"steps": 0, "samples": 0}
+LARGEST_LATENT = 1620
+"""The largest latent state the KKL rows are fitted for here: Lorenz-96 with 40 states
+(``n_z = n_y (2 n_x + 1)`` grows fourfold when the state doubles; protocol section 8)."""
 
 
 class KKLEstimator(Estimator):
@@ -29,6 +32,15 @@ class KKLEstimator(Estimator):
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
     """Trained on the task's measurement model (``FitContext.training`` and ``system.h``);
     under a sparse sampling the latent observer is driven by the last measurement held."""
+
+    def unsupported_reason(self, system, measurement):
+        if system.n_z > LARGEST_LATENT:
+            return (
+                f"not affordable here: its latent state would have n_z = {system.n_z} "
+                f"components (n_y (2 n_x + 1)), beyond the {LARGEST_LATENT} of the largest "
+                "system the KKL rows are fitted for on this machine"
+            )
+        return super().unsupported_reason(system, measurement)
 
     def fit(self, context: FitContext):
         context = calibrated_context(context)
