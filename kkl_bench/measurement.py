@@ -194,6 +194,15 @@ class NoiseLaw:
             return self.sigma**2 * (1.0 + self.outlier_fraction * (self.outlier_scale**2 - 1.0))
         return self.sigma**2
 
+    @property
+    def mixture(self) -> tuple[tuple[float, float], ...] | None:
+        """``((weight, variance), ...)`` of each component when the law is a finite mixture
+        of zero-mean Gaussians with more than one component (the outlier law), else None."""
+        if self.law != "outliers" or self.outlier_fraction == 0:
+            return None
+        fraction, scale = self.outlier_fraction, self.outlier_scale
+        return ((1.0 - fraction, self.sigma**2), (fraction, (scale * self.sigma) ** 2))
+
     def sample(self, rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
         """Noise of ``shape`` from ``rng`` (Gaussian: ``sigma * rng.standard_normal(shape)``,
         the protocol's draw, then, for the other laws, their extra draws)."""

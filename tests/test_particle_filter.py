@@ -144,3 +144,35 @@ def test_particle_filter_error_falls_as_particles_grow():
 def test_bad_parameters_are_named(params, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         ParticleFilter(**params)
+
+
+def test_the_mixture_proposal_is_the_optimal_one_for_outlier_noise():
+    """With a linear output, the optimal proposal makes the incremental weight
+    p(y | s) N(s; m, q) / q(s) the same for every draw: p(y | x), the mixture of the
+    components' Gaussian marginals."""
+    from kkl_bench.estimators.particle_filter import mixture_proposal, optimal_proposal
+
+    from kkl_bench.measurement import NoiseLaw
+
+    system = systems.get("duffing")()
+    law = NoiseLaw("outliers", 0.05, outlier_fraction=0.1, outlier_scale=30.0)
+    rng = np.random.default_rng(0)
+    mean = rng.normal(size=(500, 2))
+    y = np.full((500, 1), 0.4)
+    q = 1e-4
+    w, v, uniform = rng.normal(size=(500, 2)), rng.normal(size=(500, 1)), rng.random(500)
+    sample, log_ratio = mixture_proposal(system, mean, y, q, law.mixture, w, v, uniform)
+    increment = law.log_density(y - system.h(sample)) - log_ratio
+    e = (y - system.h(mean))[:, 0]
+    expected = np.logaddexp(
+        *(
+            np.log(weight) - 0.5 * (e**2 / (q + r) + np.log(2 * np.pi * (q + r)))
+            for weight, r in law.mixture
+        )
+    )
+    assert np.allclose(increment, expected, rtol=0, atol=1e-9)
+    one = mixture_proposal(system, mean, y, q, ((1.0, 0.0025),), w, v, uniform)
+    assert all(
+        np.allclose(a, b, rtol=1e-12, atol=1e-12)
+        for a, b in zip(one, optimal_proposal(system, mean, y, q, 0.0025, w, v), strict=True)
+    )
