@@ -80,16 +80,17 @@ def local_transform(
     """
     batch, members, n_x = forecast.shape
     sites = taper.shape[0]
+    # each site's analysis reads only the measurements it weighs (m of them at most)
+    near = np.argsort(-taper, axis=1, kind="stable")[:, : int((taper > 0).sum(axis=1).max())]
+    local_taper = np.take_along_axis(taper, near, axis=1)  # (sites, m)
     mean = forecast.mean(axis=1, keepdims=True)
     anomalies = forecast - mean
     predicted_mean = predicted.mean(axis=1, keepdims=True)
-    predicted_anomalies = predicted - predicted_mean  # (batch, N, n_y)
-    scaled = predicted_anomalies[:, None] * (taper / r)[None, :, None, :]  # (batch, sites, N, n_y)
-    precision = (members - 1) * np.eye(members) + scaled @ predicted_anomalies[:, None].swapaxes(
-        -1, -2
-    )
+    predicted_anomalies = (predicted - predicted_mean)[:, :, near].transpose(0, 2, 1, 3)
+    scaled = predicted_anomalies * (local_taper / r)[None, :, None, :]  # (batch, sites, N, m)
+    precision = (members - 1) * np.eye(members) + scaled @ predicted_anomalies.swapaxes(-1, -2)
     values, vectors = np.linalg.eigh(precision)  # (batch, sites, N), (batch, sites, N, N)
-    innovation = (y[:, None, :] - predicted_mean)[:, None]  # (batch, 1, 1, n_y)
+    innovation = (y - predicted_mean[:, 0])[:, near][:, :, None, :]  # (batch, sites, 1, m)
     projected = innovation @ scaled.swapaxes(-1, -2)  # (batch, sites, 1, N)
     weights = ((projected @ vectors) / values[..., None, :]) @ vectors.swapaxes(-1, -2)
     root = (vectors * np.sqrt((members - 1) / values)[..., None, :]) @ vectors.swapaxes(-1, -2)
