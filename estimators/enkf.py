@@ -31,6 +31,8 @@ vectorised over members and trajectories. The estimate is the analysis mean.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 
@@ -65,8 +67,23 @@ def transform(forecast: np.ndarray, predicted: np.ndarray, y: np.ndarray, r: flo
     return mean + (weights + root) @ anomalies  # W_a is symmetric
 
 
+class LocalTaper(NamedTuple):
+    """A taper restricted to the measurements each site weighs: ``near: (sites, m)``
+    their indices, ``weights: (sites, m)`` their weights (``m`` the most any site weighs;
+    shorter rows padded with zero weights)."""
+
+    near: np.ndarray
+    weights: np.ndarray
+
+    @classmethod
+    def of(cls, taper: np.ndarray) -> LocalTaper:
+        """From the full ``(sites, n_y)`` weights in [0, 1]."""
+        near = np.argsort(-taper, axis=1, kind="stable")[:, : int((taper > 0).sum(axis=1).max())]
+        return cls(near, np.take_along_axis(taper, near, axis=1))
+
+
 def local_transform(
-    forecast: np.ndarray, predicted: np.ndarray, y: np.ndarray, r: float, taper: np.ndarray
+    forecast: np.ndarray, predicted: np.ndarray, y: np.ndarray, r: float, taper: LocalTaper
 ) -> np.ndarray:
     """The LETKF analysis ensemble ``(batch, N, n_x)``: every site's states take the
     weights of an ETKF analysis of their own, in which measurement ``j`` has the
@@ -75,14 +92,13 @@ def local_transform(
 
     ``forecast: (batch, N, n_x)`` members with ``n_x = sites k`` states in site-major
     order, ``predicted: (batch, N, n_y)`` their ``h``, ``y: (batch, n_y)``, ``r`` the
-    measurement noise variance, ``taper: (sites, n_y)`` weights in [0, 1]. With every
-    weight 1 it is :func:`transform`.
+    measurement noise variance, ``taper`` the weights (:meth:`LocalTaper.of`; each site's
+    analysis reads only the measurements it weighs). With every weight 1 it is
+    :func:`transform`.
     """
     batch, members, n_x = forecast.shape
-    sites = taper.shape[0]
-    # each site's analysis reads only the measurements it weighs (m of them at most)
-    near = np.argsort(-taper, axis=1, kind="stable")[:, : int((taper > 0).sum(axis=1).max())]
-    local_taper = np.take_along_axis(taper, near, axis=1)  # (sites, m)
+    near, local_taper = taper
+    sites = near.shape[0]
     mean = forecast.mean(axis=1, keepdims=True)
     anomalies = forecast - mean
     predicted_mean = predicted.mean(axis=1, keepdims=True)
@@ -173,7 +189,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         self.taper_ = (
             None
             if self.localization is None
-            else ring_taper(context.system.ring, self.localization)
+            else LocalTaper.of(ring_taper(context.system.ring, self.localization))
         )
         self.scores_ = {}
         self.inflation_ = self.inflation

@@ -32,7 +32,7 @@ from torch import nn
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.sequence import RecurrentConfig, fit_sequence_model, inputs
+from kkl_bench.kkl.sequence import RecurrentConfig, estimates, fit_sequence_model
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.registry import estimators
 
@@ -126,9 +126,7 @@ class GRUObserver(Estimator):
 
     def estimate(self, t, y, u):
         self.check_fitted()
-        with torch.inference_mode():
-            x_hat, _ = self.network_(inputs(y, u, self.network_.observed_channel))
-        return x_hat.double().numpy()
+        return estimates(self.network_, y, u)
 
     def fit_report(self):
         return self.report_

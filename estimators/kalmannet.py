@@ -41,7 +41,7 @@ from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import thread_limit
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.sequence import RecurrentConfig, fit_sequence_model, inputs
+from kkl_bench.kkl.sequence import RecurrentConfig, estimates, fit_sequence_model
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
@@ -186,9 +186,8 @@ class KalmanNet(Estimator):
 
     def estimate(self, t, y, u):
         self.check_fitted()
-        with thread_limit(1), torch.inference_mode():
-            x_hat, _ = self.network_(inputs(y, u, self.network_.observed_channel))
-        return x_hat.double().numpy()
+        with thread_limit(1):
+            return estimates(self.network_, y, u)
 
     def fit_report(self):
         return self.report_

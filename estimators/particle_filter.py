@@ -215,16 +215,6 @@ def mixture_proposal(
     return sample, log_proposal - gaussian_log_density(sample - mean, q)
 
 
-def _proposal_mixture(measurement, n_y: int) -> tuple[tuple[float, float], ...] | None:
-    """The components the proposal mixes for ``measurement``'s noise law with one output
-    (each variance plus what the sensor loses), or None for one Gaussian."""
-    mixture = measurement.noise.mixture
-    if mixture is None or n_y != 1:
-        return None
-    added = measurement.sensor.added_variance
-    return tuple((weight, variance + added) for weight, variance in mixture)
-
-
 @estimators.register("particle_filter")
 class ParticleFilter(CalibratesOnLoggedData, Estimator):
     """Particle filter with the locally optimal proposal (see the module doc).
@@ -278,7 +268,7 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
         context = self.check_fitted()
         measurement = context.measurement
         q, r = context.sigma_w**2, measurement.variance
-        mixture = _proposal_mixture(measurement, system.n_y)
+        mixture = measurement.mixture if system.n_y == 1 else None  # one output only
         generators = trajectory_generators(context.seed, y[:, 0])
 
         def normals(dim):  # (batch, n, dim), each trajectory from its own generator

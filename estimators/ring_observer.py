@@ -43,7 +43,7 @@ from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import thread_limit
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.sequence import RecurrentConfig, fit_sequence_model, inputs
+from kkl_bench.kkl.sequence import RecurrentConfig, estimates, fit_sequence_model
 from kkl_bench.measurement import MeasurementModel
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.simulate import rk4_step
@@ -73,7 +73,7 @@ class RingLayout:
 
     def __init__(self, system: System, radius: int) -> None:
         ring = system.ring
-        self.system = system
+        self.system, self.radius = system, radius
         self.sites = ring.sites
         self.per_site = system.n_x // ring.sites
         self.output_sites = torch.as_tensor(ring.output_sites)
@@ -119,7 +119,7 @@ class LocalRingFilter(nn.Module):
     def on(self, system: System) -> LocalRingFilter:
         """This network (the same parameters and scalings) on ``system``'s ring."""
         moved = copy.copy(self)  # shares the parameter and buffer dicts; only the layout differs
-        moved.layout = RingLayout(system, (self.layout.neighbours.shape[1] - 1) // 2)
+        moved.layout = RingLayout(system, self.layout.radius)
         return moved
 
     def set_normalization(self, yu: torch.Tensor, x: torch.Tensor) -> None:
@@ -147,14 +147,15 @@ class LocalRingFilter(nn.Module):
             hidden = yu.new_zeros(batch * sites, self.cell.hidden_size)
         else:
             posterior, previous_u, hidden = state
-        estimates = []
+        measured = layout.measured.expand(batch, -1)
+        posteriors = []
         for k in range(steps):
             y, u = yu[:, k, :n_y], yu[:, k, n_y]
             if posterior is None:  # t = 0: the prior is the box centre
                 prior = layout.centre.expand(batch, -1)
             else:
                 prior = rk4_step(system, posterior, previous_u, self.dt)
-            mark = layout.measured.expand(batch, -1)
+            mark = measured
             innovation = yu.new_zeros(batch, sites)
             innovation[:, layout.output_sites] = (y - system.h(prior)) / self.e_scale
             if self.observed_channel:
@@ -169,8 +170,8 @@ class LocalRingFilter(nn.Module):
             correction = (gain @ local[..., None])[..., 0] * self.e_scale
             posterior = torch.clamp(prior + correction.reshape(batch, -1), low, high)
             previous_u = u
-            estimates.append(posterior)
-        return torch.stack(estimates, dim=1), (posterior, previous_u, hidden)
+            posteriors.append(posterior)
+        return torch.stack(posteriors, dim=1), (posterior, previous_u, hidden)
 
 
 @estimators.register("ring_observer")
@@ -252,9 +253,8 @@ class RingObserver(Estimator):
 
     def estimate(self, t, y, u):
         self.check_fitted()
-        with thread_limit(1), torch.inference_mode():
-            x_hat, _ = self.network_(inputs(y, u, self.network_.observed_channel))
-        return x_hat.double().numpy()
+        with thread_limit(1):
+            return estimates(self.network_, y, u)
 
     def fit_report(self):
         return self.report_

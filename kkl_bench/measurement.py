@@ -302,6 +302,16 @@ class MeasurementModel:
         what the sensor loses (:attr:`Sensor.added_variance`)."""
         return self.noise.variance + self.sensor.added_variance
 
+    @property
+    def mixture(self) -> tuple[tuple[float, float], ...] | None:
+        """The noise law's Gaussian components ``((weight, variance), ...)`` as a filter
+        takes them, each variance plus what the sensor loses (as :attr:`variance`); None
+        unless the law is a mixture (:attr:`NoiseLaw.mixture`)."""
+        if self.noise.mixture is None:
+            return None
+        added = self.sensor.added_variance
+        return tuple((weight, variance + added) for weight, variance in self.noise.mixture)
+
     def cache_entry(self) -> dict[str, str]:
         """What a trained model's cache description adds for this measurement model: nothing
         for the protocol's (the keys of models trained before it existed stay valid)."""

@@ -2,7 +2,13 @@
 
 import numpy as np
 import pytest
-from kkl_bench.estimators.enkf import gaspari_cohn, local_transform, ring_taper, transform
+from kkl_bench.estimators.enkf import (
+    LocalTaper,
+    gaspari_cohn,
+    local_transform,
+    ring_taper,
+    transform,
+)
 
 from kkl_bench import variants
 from kkl_bench.measurement import MeasurementModel
@@ -36,13 +42,13 @@ def test_ring_taper_measures_distance_around_the_ring():
 
 def test_the_local_analysis_with_no_taper_is_the_global_one():
     forecast, predicted, y = ensembles()
-    local = local_transform(forecast, predicted, y, 0.3, np.ones((8, 4)))
+    local = local_transform(forecast, predicted, y, 0.3, LocalTaper.of(np.ones((8, 4))))
     assert np.allclose(local, transform(forecast, predicted, y, 0.3), rtol=1e-12, atol=1e-12)
 
 
 def test_a_site_ignores_measurements_beyond_the_taper():
     forecast, predicted, y = ensembles()
-    taper = ring_taper(Ring(sites=8, output_sites=(0, 2, 4, 6)), 1.0)
+    taper = LocalTaper.of(ring_taper(Ring(sites=8, output_sites=(0, 2, 4, 6)), 1.0))
     moved = y.copy()
     moved[:, 2] += 5.0  # the output at site 4: two sites or more from sites 0, 1, 2, 6, 7
     before = local_transform(forecast, predicted, y, 0.3, taper)

@@ -80,6 +80,15 @@ def inputs(y: np.ndarray, u: np.ndarray, observed_channel: bool) -> torch.Tensor
     return torch.as_tensor(np.concatenate(parts, axis=-1), dtype=torch.float32)
 
 
+def estimates(network: nn.Module, y: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """A trained sequence network's estimates ``(batch, steps, n_x)`` (float64) from
+    ``y: (batch, steps, n_y)`` (NaN where not measured) and ``u: (batch, steps, 1)``,
+    from ``t = 0``."""
+    with torch.inference_mode():
+        x_hat, _ = network(inputs(y, u, network.observed_channel))
+    return x_hat.double().numpy()
+
+
 def train_windows(
     network: nn.Module,
     yu: torch.Tensor,
