@@ -25,11 +25,14 @@ weights use its exact log-density through its sensor (``system.h``); the
 proposal linearises the sensor and takes the noise law's variance (plus a
 quantizer's ``step^2 / 12``) as ``r``, which changes its efficiency, never the
 weights' correctness. For the outlier law with one output the proposal is the
-law's own mixture (:func:`mixture_proposal`): one Gaussian proposal per
-component, weighted by how likely the measurement is under each, so that an
-inlier measurement is not read with the outliers' variance (with one Gaussian
-of the law's variance, 10000 particles did not reach the limit: a recurrent
-network beat it on two outlier cells). A sample whose measurement is missing (NaN) moves the
+law's own mixture (:func:`mixture_proposal`, and :func:`initial_proposal` for
+the first sample): one Gaussian proposal per component, weighted by how likely
+the measurement is under each, so that an inlier measurement is not read with
+the outliers' variance (with one Gaussian of the law's variance, 10000
+particles did not reach the limit: a recurrent network beat it on two outlier
+cells), nor an outlier with the inliers' (a first measurement 40 away from
+the state, read with one Gaussian of the law's variance, put every particle
+outside the x0 box: the trajectory was lost from its first sample). A sample whose measurement is missing (NaN) moves the
 particles by the transition and leaves the weights as they are. The first
 sample is always measured (protocol 7.6).
 
@@ -44,6 +47,7 @@ from __future__ import annotations
 import numpy as np
 from kkl_bench.estimators.kalman import box_prior
 from kkl_bench.estimators.monte_carlo import trajectory_generators
+from scipy.linalg import solve_triangular
 from scipy.special import logsumexp
 
 from kkl_bench.calibration import CalibratesOnLoggedData
@@ -215,6 +219,80 @@ def mixture_proposal(
     return sample, log_proposal - gaussian_log_density(sample - mean, q)
 
 
+def initial_proposal(
+    mean: np.ndarray,
+    covariance: np.ndarray,
+    jacobian: np.ndarray,
+    innovation: np.ndarray,
+    components: tuple[tuple[float, float], ...],
+    standard: np.ndarray,
+    uniform: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Draw the first sample's particles from the Gaussian prior ``N(mean, covariance)``
+    updated by the first measurement, whose noise is the mixture of zero-mean Gaussians
+    ``components = ((weight, variance), ...)`` (one for a Gaussian law).
+
+    With ``h`` linearised as ``jacobian: (n_y, n_x)``, the proposal is the mixture of the
+    components' Kalman posteriors, each weighted by its weight times
+    ``N(innovation; 0, H P H^T + r I)``: the posterior itself when ``h`` is linear. An
+    outlier in the first measurement is then read with the outliers' variance instead of
+    pulling every particle to it (out of the box, where all weights vanish).
+    ``innovation: (batch, n_y)``, ``standard: (batch, n, n_x)`` standard normal draws,
+    ``uniform: (batch, n)`` picks the component (None for one component). Returns the
+    particles ``(batch, n, n_x)`` and their log proposal density up to a constant ``(batch, n)``.
+    """
+    n_y = jacobian.shape[0]
+    posteriors = []
+    for _, r in components:
+        innovation_covariance = jacobian @ covariance @ jacobian.T + r * np.eye(n_y)
+        gain = covariance @ jacobian.T @ np.linalg.inv(innovation_covariance)
+        posterior = covariance - gain @ jacobian @ covariance
+        cholesky = np.linalg.cholesky(0.5 * (posterior + posterior.T))
+        posteriors.append((mean + innovation @ gain.T, cholesky, innovation_covariance))
+    if len(components) == 1:
+        means, cholesky, _ = posteriors[0]
+        particles = means[:, None, :] + standard @ cholesky.T
+        log_density = -0.5 * np.sum(standard**2, axis=-1) - np.sum(np.log(np.diag(cholesky)))
+        return particles, log_density
+    log_weights = np.stack(
+        [
+            np.log(weight) - 0.5 * _quadratic(innovation, np.linalg.cholesky(s)) - _half_log_det(s)
+            for (weight, _), (_, _, s) in zip(components, posteriors, strict=True)
+        ],
+        axis=-1,
+    )  # (batch, components)
+    log_weights -= logsumexp(log_weights, axis=-1, keepdims=True)
+    chosen = (uniform[..., None] > np.cumsum(np.exp(log_weights), axis=-1)[:, None, :]).sum(-1)
+    chosen = np.minimum(chosen, len(components) - 1)  # (batch, n)
+    draws = np.stack([m[:, None, :] + standard @ c.T for m, c, _ in posteriors], axis=-1)
+    particles = np.take_along_axis(draws, chosen[..., None, None], axis=-1)[..., 0]
+    log_density = logsumexp(
+        np.stack(
+            [
+                -0.5 * _quadratic(particles - m[:, None, :], c) - np.sum(np.log(np.diag(c)))
+                for m, c, _ in posteriors
+            ],
+            axis=-1,
+        )
+        + log_weights[:, None, :],
+        axis=-1,
+    )
+    return particles, log_density
+
+
+def _quadratic(offset: np.ndarray, cholesky: np.ndarray) -> np.ndarray:
+    """``offset^T (L L^T)^-1 offset`` over the last axis of ``offset: (..., d)``."""
+    solved = solve_triangular(
+        cholesky, np.moveaxis(offset, -1, 0).reshape(len(cholesky), -1), lower=True
+    )
+    return np.sum(solved**2, axis=0).reshape(offset.shape[:-1])
+
+
+def _half_log_det(matrix: np.ndarray) -> float:
+    """``0.5 log det`` of a symmetric positive definite matrix."""
+    return 0.5 * np.linalg.slogdet(matrix)[1]
+
+
 @estimators.register("particle_filter")
 class ParticleFilter(CalibratesOnLoggedData, Estimator):
     """Particle filter with the locally optimal proposal (see the module doc).
@@ -274,10 +352,13 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
         def normals(dim):  # (batch, n, dim), each trajectory from its own generator
             return np.stack([rng.standard_normal((self.n, dim)) for rng in generators])
 
+        def uniforms():  # (batch, n)
+            return np.stack([rng.random(self.n) for rng in generators])
+
         batch, steps, _ = y.shape
         x_hat = np.full((batch, steps, system.n_x), np.nan)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            particles, log_weights = self._initial(system, y[:, 0], q, r, normals)
+            particles, log_weights = self._initial(system, y[:, 0], r, normals, uniforms)
             for k in range(steps):
                 if k > 0:
                     mean = rk4_step(
@@ -302,7 +383,7 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
                                 mixture,
                                 normals(system.n_x),
                                 normals(system.n_y),
-                                np.stack([rng.random(self.n) for rng in generators]),
+                                uniforms(),
                             )
                         if not present.all():  # (draws only then: the stream stays v1's)
                             transition = mean + np.sqrt(q) * normals(system.n_x)
@@ -326,24 +407,27 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
             np.isnan(x_hat).any(axis=-1, keepdims=True).cumsum(axis=1) > 0, np.nan, x_hat
         )
 
-    def _initial(self, system: System, y0: np.ndarray, q: float, r: float, normals):
-        """Particles ``(batch, n, n_x)`` and log weights ``(batch, n)`` for the first sample.
+    def _initial(self, system: System, y0: np.ndarray, r: float, normals, uniforms):
+        """Particles ``(batch, n, n_x)`` and log weights ``(batch, n)`` for the first sample
+        (``normals(dim)``, ``uniforms()``: each trajectory's draws ``(batch, n, dim)``,
+        ``(batch, n)``).
 
-        Proposal: the box's Gaussian moments (covariance inflated) updated by ``y0``
-        through ``h`` linearised at the box centre; weight ``1_box p(y0 | x) / q(x)``.
+        Proposal: :func:`initial_proposal` from the box's Gaussian moments (covariance
+        inflated), ``h`` linearised at the box centre and the noise law's components (one
+        of variance ``r`` unless the law is a mixture); weight ``1_box p(y0 | x) / q(x)``.
         """
         context = self.check_fitted()
         centre, covariance = box_prior(context)
-        covariance = _PRIOR_INFLATION * covariance
-        jacobian = system.h_jacobian(centre)
-        innovation_covariance = jacobian @ covariance @ jacobian.T + r * np.eye(system.n_y)
-        gain = covariance @ jacobian.T @ np.linalg.inv(innovation_covariance)
-        means = centre + (y0 - system.h(centre)) @ gain.T  # (batch, n_x)
-        posterior = covariance - gain @ jacobian @ covariance
-        cholesky = np.linalg.cholesky(0.5 * (posterior + posterior.T))
-        standard = normals(system.n_x)
-        particles = means[:, None, :] + standard @ cholesky.T
-        log_proposal = -0.5 * np.sum(standard**2, axis=-1) - np.sum(np.log(np.diag(cholesky)))
+        mixture = context.measurement.mixture if system.n_y == 1 else None
+        particles, log_proposal = initial_proposal(
+            centre,
+            _PRIOR_INFLATION * covariance,
+            system.h_jacobian(centre),
+            y0 - system.h(centre),
+            mixture or ((1.0, r),),
+            normals(system.n_x),
+            uniforms() if mixture else None,
+        )
         inside = np.all((particles >= context.x0_low) & (particles <= context.x0_high), axis=-1)
         log_likelihood = context.measurement.log_density(y0[:, None, :], system.h(particles))
         return particles, np.where(inside, log_likelihood - log_proposal, -np.inf)

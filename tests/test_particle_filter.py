@@ -176,3 +176,45 @@ def test_the_mixture_proposal_is_the_optimal_one_for_outlier_noise():
         np.allclose(a, b, rtol=1e-12, atol=1e-12)
         for a, b in zip(one, optimal_proposal(system, mean, y, q, 0.0025, w, v), strict=True)
     )
+
+
+def test_the_initial_proposal_is_the_posterior_for_a_linear_output():
+    """With a linear output, the first sample's proposal is the exact posterior of the
+    Gaussian prior: the weight p(y0 | x) N(x; m, P) / q(x) is the same for every particle
+    (the mixture of the components' predictive densities), whichever component an
+    outlier-law draw took; one component is the Kalman update."""
+    from kkl_bench.estimators.particle_filter import initial_proposal
+
+    from kkl_bench.measurement import NoiseLaw
+
+    system = systems.get("duffing")()
+    law = NoiseLaw("outliers", 0.05, outlier_fraction=0.1, outlier_scale=30.0)
+    mean, covariance = np.array([0.2, -0.1]), np.diag([0.4, 0.3])
+    jacobian = system.h_jacobian(mean)
+    y0 = np.array([[0.5], [2.5]])  # an inlier and an outlier
+    rng = np.random.default_rng(0)
+    standard, uniform = rng.normal(size=(2, 400, 2)), rng.random((2, 400))
+    innovation = y0 - system.h(mean)
+    particles, log_q = initial_proposal(
+        mean, covariance, jacobian, innovation, law.mixture, standard, uniform
+    )
+    offset = particles - mean
+    log_prior = -0.5 * np.sum(offset**2 / np.diag(covariance), axis=-1)
+    log_weight = law.log_density(y0[:, None, :] - system.h(particles)) + log_prior - log_q
+    assert np.ptp(log_weight, axis=1) == pytest.approx([0, 0], abs=1e-9)
+    # x1's mean is the components' Kalman means weighted by w_c N(e; 0, P11 + r_c)
+    e = innovation[:, 0]
+    log_w = np.stack(
+        [np.log(w) - 0.5 * (e**2 / (0.4 + r) + np.log(0.4 + r)) for w, r in law.mixture], -1
+    )
+    posterior = np.exp(log_w - np.logaddexp(*log_w.T)[:, None])
+    kalman = np.stack([mean[0] + 0.4 / (0.4 + r) * e for _, r in law.mixture], -1)
+    assert particles[:, :, 0].mean(axis=1) == pytest.approx(
+        np.sum(posterior * kalman, axis=1), abs=0.05
+    )
+    one, _ = initial_proposal(
+        mean, covariance, jacobian, innovation, ((1.0, 0.0025),), standard, None
+    )
+    gain = 0.4 / (0.4 + 0.0025)
+    assert one[:, :, 0].mean(axis=1) == pytest.approx(mean[0] + gain * innovation[:, 0], abs=0.01)
+    assert one[:, :, 0].var(axis=1) == pytest.approx([0.4 * (1 - gain)] * 2, rel=0.2)
