@@ -21,11 +21,12 @@ from dataclasses import dataclass
 
 import torch
 
-from kkl_bench.kkl.autonomous import fit_phase1, train_decoder
+from kkl_bench.kkl.autonomous import decoder_rmse, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import observer_data
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.inputs import ConstantFamily, MultiSineFamily, SineFamily, SquareFamily
+from kkl_bench.kkl.optimize import converged
 from kkl_bench.kkl.phase2 import Phase2Config, load_or_train, phase2_description
 from kkl_bench.registry import estimators
 
@@ -89,19 +90,29 @@ class CurriculumKKL(KKLEstimator):
 
     @staticmethod
     def _train(context, model, data_config, config, generator) -> dict:
+        """Each level's epochs until its loss plateaus; per level, the validation curve of
+        the decoder's RMSE on the level's own validation trajectories, epoch by epoch."""
         decoder = model.decoder
         decoder.requires_grad_(True)
         log = {}
         for index, (level, family) in enumerate(LEVELS):
-            data = observer_data(
-                context,
-                model.observer,
-                family,
-                data_config.phase2_trajectories,
-                f"kkl/curriculum/{index}",
+            pairs = {
+                split: observer_data(context, model.observer, family, count, stream).scored()
+                for split, count, stream in (
+                    ("train", data_config.phase2_trajectories, f"kkl/curriculum/{index}"),
+                    (
+                        "validation",
+                        max(4, data_config.phase2_trajectories // 4),
+                        f"kkl/curriculum/{index}/validation",
+                    ),
+                )
+            }
+            x, z = (torch.as_tensor(a, dtype=torch.float32) for a in pairs["train"])
+            x_val, z_val = pairs["validation"]
+            validation_rmse = decoder_rmse(
+                decoder, torch.as_tensor(z_val, dtype=torch.float32), x_val
             )
-            x, z = (torch.as_tensor(a, dtype=torch.float32) for a in data.scored())
-            epoch_losses = []
+            epoch_losses, curve = [], [(0, validation_rmse())]
             while len(epoch_losses) < config.max_epochs:
                 losses = train_decoder(
                     decoder,
@@ -111,13 +122,19 @@ class CurriculumKKL(KKLEstimator):
                     1024,
                     generator,
                     f"{context.system.name}: curriculum {level}",
-                )
+                ).losses
                 epoch_losses.append(sum(losses) / len(losses))
+                curve.append((len(epoch_losses) * config.curriculum_epoch_steps, validation_rmse()))
                 if len(epoch_losses) >= config.min_epochs and plateaued(
                     epoch_losses, config.patience, config.threshold
                 ):
                     break
-            log[level] = {"epochs": len(epoch_losses), "final_loss": epoch_losses[-1]}
+            log[level] = {
+                "epochs": len(epoch_losses),
+                "final_loss": epoch_losses[-1],
+                "validation_curve": curve,
+                "converged": converged(curve),
+            }
         return log
 
     def estimate(self, t, y, u):

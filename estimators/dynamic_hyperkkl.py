@@ -19,7 +19,6 @@ exactly zero the base decoder is used, so zero input reproduces
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -29,7 +28,7 @@ from kkl_bench.kkl.hyper import make_head
 from kkl_bench.kkl.latent import latent_drift
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative, normalized_field_rms
-from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
+from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2, held_out_loss
 from kkl_bench.kkl.windows import WindowEncoder, distinct, encode, is_active, sliding_windows
 from kkl_bench.registry import estimators
 
@@ -99,19 +98,21 @@ class DynamicHyperKKL(KKLEstimator):
         )
 
     def _train(self, context, model, config, hyper, generator) -> dict:
+        """Fit the hypernetwork (see the module); the log records the loss on held-out
+        forced samples as the validation curve."""
         system = context.system
         samples = ForcedSamples.simulate(context, model, config)
-        x, z_observed, u = samples.tensor("x"), samples.tensor("z"), samples.tensor("u")
-        pool = x[:, 51:].reshape(-1, system.n_x)
         encoder, decoder = model.encoder, model.decoder
         a, b = (
             torch.as_tensor(m, dtype=torch.float32) for m in (model.observer.a, model.observer.b)
         )
         g = torch.as_tensor(system.g, dtype=torch.float32)
-        field_scale = normalized_field_rms(encoder, system.f(pool))
+        field_scale = normalized_field_rms(encoder, system.f(_pool(samples)))
         n_windows = max(1, config.phase2_batch // config.collocation_points)
 
-        def loss(_):
+        def batch_loss(samples: ForcedSamples, generator: torch.Generator) -> torch.Tensor:
+            x, z_observed, u = samples.tensor("x"), samples.tensor("z"), samples.tensor("u")
+            pool = _pool(samples)
             trajectory, step = samples.draw(n_windows, generator, last_offset=1)
             contexts, zero = hyper.contexts(
                 torch.cat(
@@ -147,14 +148,14 @@ class DynamicHyperKKL(KKLEstimator):
                 + self.pde_weight * normalized_residual.pow(2).sum(-1).mean()
             )
 
-        losses = minimize(
-            loss,
+        return minimize(
+            lambda _: batch_loss(samples, generator),
             hyper.parameters(),
             config.phase2_steps,
             n_windows * config.collocation_points,
             description=f"{system.name}: hypernetwork",
-        )
-        return {"final_loss": float(np.mean(losses[-50:]))}
+            validation=held_out_loss(batch_loss, ForcedSamples.held_out(context, model, config)),
+        ).log()
 
     def estimate(self, t, y, u):
         self.check_fitted()
@@ -195,6 +196,13 @@ class DynamicHyperKKL(KKLEstimator):
                 )
                 flat_x[samples.numpy()] = decoded[:, 0].double().numpy()
         return x_hat
+
+
+def _pool(samples: ForcedSamples) -> torch.Tensor:
+    """The collocation states: every state of ``samples`` after the first 51 samples
+    ``(count, n_x)``."""
+    x = samples.tensor("x")
+    return x[:, 51:].reshape(-1, x.shape[-1])
 
 
 def _chunks(indices: torch.Tensor, size: int) -> tuple[torch.Tensor, ...]:

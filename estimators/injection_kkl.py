@@ -40,8 +40,9 @@ from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import GAINS, select_gain, simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
+from kkl_bench.kkl.optimize import converged
 from kkl_bench.kkl.phase2 import load_or_train, phase2_description
-from kkl_bench.protocol.metrics import steady_state_start
+from kkl_bench.protocol.metrics import rmse, steady_state_start
 from kkl_bench.registry import estimators, regimes
 
 
@@ -119,29 +120,36 @@ def adapt(
         config.injection_gains,
     )
     log = {"injection_gain": gain, "gain_selection": scores}
-    x, y, u = simulate_families(
-        context,
-        {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING},
-        config.adaptation_trajectories,
-        "kkl/adapt",
+    families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
+    x, y, u = simulate_families(context, families, config.adaptation_trajectories, "kkl/adapt")
+    x_val, y_val, u_val = simulate_families(
+        context, families, max(4, config.adaptation_trajectories // 4), "kkl/adapt/curve"
     )
+
+    def validation_rmse() -> float:  # the injected observer's, on its own trajectories
+        z = model.observer.run(y_val, ExactInjection(model, system.g, u_val, gain))
+        return float(rmse(x_val, model.decode(z)).mean())
+
     start = steady_state_start(x.shape[1])
     states = torch.as_tensor(x[:, start:].reshape(-1, system.n_x), dtype=torch.float32)
     model.decoder.requires_grad_(True)
+    steps = config.adaptation_steps // config.adaptation_rounds
+    curve = [(0, validation_rmse())]
     for round_ in range(config.adaptation_rounds):
         z = model.observer.run(y, ExactInjection(model, system.g, u, gain))
         latent = torch.as_tensor(z[:, start:].reshape(-1, z.shape[-1]), dtype=torch.float32)
-        losses = train_decoder(
+        training = train_decoder(
             model.decoder,
             latent,
             states,
-            config.adaptation_steps // config.adaptation_rounds,
+            steps,
             config.batch,
             generator,
             f"{system.name}: adapting T* ({round_ + 1}/{config.adaptation_rounds})",
         )
-        log[f"round {round_ + 1}"] = {"final_loss": float(np.mean(losses[-50:]))}
-    return log
+        log[f"round {round_ + 1}"] = training.log()
+        curve.append(((round_ + 1) * steps, validation_rmse()))
+    return {**log, "validation_curve": curve, "converged": converged(curve)}
 
 
 @estimators.register("injection_kkl")

@@ -29,7 +29,7 @@ from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.optimize import minimize
 from kkl_bench.kkl.pde import directional_derivative
-from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2
+from kkl_bench.kkl.phase2 import ForcedSamples, fit_phase2, held_out_loss
 from kkl_bench.kkl.windows import WindowEncoder, embed, sliding_windows
 from kkl_bench.registry import estimators
 
@@ -96,14 +96,14 @@ class StaticHyperKKL(KKLEstimator):
 
     @staticmethod
     def _train(context, model, config, injection, generator) -> dict:
-        samples = ForcedSamples.simulate(context, model, config)
-        x = samples.tensor("x")
+        """Fit ``psi`` to the encoder's derivative along ``g``; the log records the loss on
+        held-out forced samples as the validation curve."""
         encoder = model.encoder
         g = torch.as_tensor(context.system.g, dtype=torch.float32)
 
-        def loss(_):
+        def batch_loss(samples: ForcedSamples, generator: torch.Generator) -> torch.Tensor:
             trajectory, step = samples.draw(config.phase2_batch, generator)
-            states = x[trajectory, step]
+            states = samples.tensor("x")[trajectory, step]
             with torch.no_grad():
                 z, dz_along_g = directional_derivative(encoder, states, g.expand_as(states))
                 z_tilde = encoder.normalized_output(z)
@@ -112,14 +112,15 @@ class StaticHyperKKL(KKLEstimator):
             contexts = injection.window_encoder(samples.windows[trajectory, step])
             return (injection(z_tilde, contexts) - target).pow(2).sum(-1).mean()
 
-        losses = minimize(
-            loss,
+        samples = ForcedSamples.simulate(context, model, config)
+        return minimize(
+            lambda _: batch_loss(samples, generator),
             injection.parameters(),
             config.phase2_steps,
             config.phase2_batch,
             description=f"{context.system.name}: injection psi",
-        )
-        return {"final_loss": float(np.mean(losses[-50:]))}
+            validation=held_out_loss(batch_loss, ForcedSamples.held_out(context, model, config)),
+        ).log()
 
     def _injection(self, u: np.ndarray, gain: float):
         """``injection(k, z_k) = gain u_k psi(z_k, c_k)`` (latent units) for ``u: (batch, steps, 1)``.

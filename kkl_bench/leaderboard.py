@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
+from kkl_bench import convergence
 from kkl_bench.comparisons import LIMIT, TRUTH_LIMIT
 from kkl_bench.report import markdown
 from kkl_bench.report.model import Table
@@ -270,6 +271,7 @@ COST_COLUMNS = {
     "phase1_samples": "Phase 1 samples",
     "phase2_steps": "2nd phase steps",
     "phase2_samples": "2nd phase samples",
+    "converged": "Converged",
     "nrmse_mean": "NRMSE (mean over regimes)",
     "reconstruction_rmse_unforced": "|x - T*(T(x))| unforced",
     "reconstruction_rmse_forced": "|x - T*(T(x))| forced",
@@ -278,12 +280,18 @@ COST_COLUMNS = {
 """The cost table's columns: per (estimator, system), means over regimes and seeds."""
 
 
+_COST_AGGREGATES = {
+    **{key: "first" for key in MAP_QUALITY},
+    "converged": convergence.worst,
+}
+
+
 def cost_frame(summary: pd.DataFrame) -> pd.DataFrame:
     """Per (estimator, system): costs, training budget spent, NRMSE and map quality."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
     grouped = ours.groupby(["estimator", "system"]).agg(
         **{
-            key: (key, "first" if key in MAP_QUALITY or "phase" in key else "mean")
+            key: (key, _COST_AGGREGATES.get(key, "first" if "phase" in key else "mean"))
             for key in COST_COLUMNS
         }
     )

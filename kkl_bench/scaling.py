@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kkl_bench import variants
+from kkl_bench import convergence, variants
 from kkl_bench.cost import fastest_round_robin
 from kkl_bench.estimator import Estimator
 from kkl_bench.spec import RunSpec, make_fit_context
@@ -102,6 +102,7 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
                 )
                 if failed.empty
                 else math.nan,
+                "converged": convergence.worst(cells["converged"]),
             }
         )
     return pd.DataFrame(rows)

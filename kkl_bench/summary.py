@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from kkl_bench import variants
+from kkl_bench import convergence, variants
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.results import mean_and_std
 from kkl_bench.significance import MARGIN, mark_column
@@ -129,7 +129,8 @@ def summary_table(
     and n_unsettled (median settling time over all trajectories and how many
     never settled; NaN and 0 for cells recorded without settling times), task,
     track, protocol, map quality, the steps and samples spent
-    (``phase1_steps`` ...), ``mark`` (``best``, ``tied`` or empty, see
+    (``phase1_steps`` ...), ``converged`` (whether the trainings converged:
+    :func:`kkl_bench.convergence.verdict` over the seeds' fits), ``mark`` (``best``, ``tied`` or empty, see
     :mod:`kkl_bench.significance`; ``margin`` is its practical-equivalence margin) and ``rmse_trajectories`` (per seed, per
     trajectory; ``(n_seeds, n_test)`` nested lists, not written to CSV).
     """
@@ -169,6 +170,7 @@ def summary_table(
                 "protocol": cells["protocol"].iloc[0],
                 **_map_quality(cells),
                 **_spent(cells),
+                "converged": convergence.verdict(cells.get("fit_report", [])),
                 "rmse_trajectories": rmse_by_seed,
             }
         )

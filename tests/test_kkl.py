@@ -562,7 +562,9 @@ def test_adapted_injection_kkl_trains_a_copy_of_the_decoder_and_logs_its_rounds(
     log = adapted.fit_report()["training_log"]
     assert list(log) == ["injection_gain", "gain_selection"] + [
         f"round {i}" for i in range(1, 5)
-    ] + ["spent"]
+    ] + ["validation_curve", "converged", "spent"]
+    # the injected observer's validation RMSE before adapting and after each round
+    assert [step for step, _ in log["validation_curve"]] == [0, 10, 20, 30, 40]
     assert set(log["gain_selection"]) == {"0", "0.25", "0.5", "0.75", "1"}
     assert log["injection_gain"] == adapted.gain_ and pure.gain_ == 1.0
     assert "training_log" not in pure.fit_report()

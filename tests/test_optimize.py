@@ -51,3 +51,62 @@ def test_a_resumed_training_counts_the_time_spent_before_the_interruption(tmp_pa
     # 10 s of the first call and 4 of the second before the checkpoint, 6 after the resume
     assert spent.seconds == 20.0
     assert (spent.steps, spent.samples) == (20, 60)
+
+
+def test_the_validation_curve_is_measured_before_training_and_at_every_tenth(tmp_path, clock):
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    calls = []
+
+    def validation():
+        calls.append(parameter.item())
+        return abs(1.0 - parameter.item())
+
+    training = optimize.minimize(
+        lambda step: ((parameter - 1.0) ** 2).sum(),
+        [parameter],
+        25,
+        1,
+        lr=0.1,
+        validation=validation,
+    )
+    steps = [step for step, _ in training.validation]
+    assert steps == [0, 3, 6, 9, 12, 15, 18, 21, 24, 25]  # ceil(25 / 10) = 3
+    assert training.validation[0][1] == 1.0 and len(training.losses) == 25
+    log = training.log()
+    assert log["validation_curve"][-1] == [25, training.validation[-1][1]]
+    assert log["converged"] is optimize.converged(training.validation)
+
+
+def test_a_resumed_training_keeps_its_validation_curve(tmp_path, clock):
+    def run(interrupt_at=None):
+        parameter = torch.nn.Parameter(torch.zeros(1))
+
+        def loss(step):
+            if step == interrupt_at:
+                raise Interrupted
+            return ((parameter - 1.0) ** 2).sum()
+
+        generator = torch.Generator().manual_seed(0)
+        with optimize.resumable(tmp_path, {"kind": "curve"}, [generator], every=4):
+            return optimize.minimize(
+                loss, [parameter], 10, 1, lr=0.1, validation=lambda: float(parameter.item())
+            )
+
+    whole = run()
+    with pytest.raises(Interrupted):
+        run(interrupt_at=6)  # checkpoint at step 4
+    assert run().validation == whole.validation
+
+
+@pytest.mark.parametrize(
+    ("curve", "expected"),
+    [
+        ([(0, 1.0), (50, 0.40), (75, 0.39), (100, 0.385)], True),  # second half: -3.75 %
+        ([(0, 1.0), (50, 0.40), (75, 0.38), (100, 0.37)], False),  # -7.5 %: still improving
+        ([(0, 1.0), (25, 0.3), (50, 0.35), (100, 0.36)], True),  # rose again: converged
+        ([(0, 1.0), (100, 0.5)], None),  # too short to say
+        ([(0, 1.0), (75, float("nan")), (100, 0.5)], False),  # diverged on the way
+    ],
+)
+def test_the_convergence_rule_reads_the_second_half(curve, expected):
+    assert optimize.converged(curve) is expected

@@ -20,6 +20,7 @@ a Phase 1 that is killed continues from its last checkpoint when rerun.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -38,7 +39,7 @@ from kkl_bench.kkl.latent import (
     spread_eigenvalues,
 )
 from kkl_bench.kkl.networks import NormalizedMLP, seeded
-from kkl_bench.kkl.optimize import counting, minimize, resumable
+from kkl_bench.kkl.optimize import Training, counting, minimize, resumable
 from kkl_bench.kkl.pde import normalized_field_rms, pde_residual
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.signals import InputFamily
@@ -91,16 +92,22 @@ class AutonomousModel:
     """Map-quality numbers on held-out training-stream states (see :func:`map_quality`)."""
     spent: dict[str, int] = field(default_factory=dict)
     """Optimizer steps and samples Phase 1 took (rate selection, encoder, decoder)."""
+    training_log: dict = field(default_factory=dict)
+    """The decoder's training log with its validation curve (empty for a model cached
+    before curves were recorded)."""
 
     def report(self) -> dict:
         """What a KKL plugin records with its results: toolkit version, rates, their
         selection, map quality."""
-        return {
+        report = {
             "toolkit": self.description.get("toolkit"),
             "latent_rates": self.rates.tolist(),
             "rate_selection": self.selection,
             "map_quality": self.quality,
         }
+        if self.training_log:
+            report["phase1_log"] = self.training_log
+        return report
 
     def decode(self, z: np.ndarray) -> np.ndarray:
         """``T*(z)``: ``z: (..., n_z)`` -> ``(..., n_x)`` (float64 numpy).
@@ -183,14 +190,31 @@ def train_decoder(
     batch: int,
     generator: torch.Generator,
     description: str,
-) -> list[float]:
-    """Fit ``decoder`` to pairs ``z: (n, n_z) -> x: (n, n_x)`` in normalized state units."""
+    validation: tuple[torch.Tensor, np.ndarray] | None = None,
+) -> Training:
+    """Fit ``decoder`` to pairs ``z: (n, n_z) -> x: (n, n_x)`` in normalized state units;
+    with ``validation = (z_val, x_val)`` (a tensor and an array), record its RMSE on them
+    (state units) as it goes."""
 
     def loss(_):
         rows = draw_integers(len(z), (batch,), generator)
         return decoder.output_difference(decoder(z[rows]) - x[rows]).pow(2).sum(-1).mean()
 
-    return minimize(loss, decoder.parameters(), steps, batch, description=description)
+    error = None if validation is None else decoder_rmse(decoder, *validation)
+    return minimize(
+        loss, decoder.parameters(), steps, batch, description=description, validation=error
+    )
+
+
+def decoder_rmse(decoder: NormalizedMLP, z: torch.Tensor, x: np.ndarray) -> Callable[[], float]:
+    """The RMSE of ``decoder(z)`` against ``x`` (all samples and states, state units), as
+    a function to call as training goes (``z: (n, n_z)`` tensor, ``x: (n, n_x)`` array)."""
+
+    def error() -> float:
+        with torch.no_grad():
+            return float(np.sqrt(np.mean((to_numpy(decoder(z)) - x) ** 2)))
+
+    return error
 
 
 def _select_rates(
@@ -232,8 +256,7 @@ def _select_rates(
             f"{system.name}: rates {slowest:g}-{fastest:g}",
         )
         x_val, z_val = validation.scored()
-        with torch.no_grad():
-            rmse = float(np.sqrt(np.mean((to_numpy(decoder(_tensor(z_val))) - x_val) ** 2)))
+        rmse = decoder_rmse(decoder, _tensor(z_val), x_val)()
         scores[f"{slowest:g}-{fastest:g}"] = rmse
         if best is None or rmse < best[0]:
             best = (rmse, rates)
@@ -284,11 +307,13 @@ def _train_phase1(
     encoder: NormalizedMLP,
     decoder: NormalizedMLP,
     generator: torch.Generator,
-) -> tuple[np.ndarray, dict[str, float]]:
+) -> tuple[np.ndarray, dict[str, float], dict]:
     """Choose the latent rates, then train ``encoder`` and ``decoder`` in place; every
     random draw of the training comes from ``generator``.
 
-    Returns the rates and the validation score of each candidate range.
+    Returns the rates, the validation score of each candidate range and the decoder's
+    training log (its validation curve: RMSE on the rate selection's validation
+    trajectories, observed with the chosen rates).
     """
     system = context.system
     unforced = regimes.get("zero")()
@@ -301,10 +326,21 @@ def _train_phase1(
     _train_encoder(context, config, encoder, data, rates, generator)
     x, z = (_tensor(a) for a in data.scored())
     decoder.set_normalization(z, x)
-    train_decoder(
-        decoder, z, x, config.decoder_steps, config.batch, generator, f"{system.name}: decoder T*"
+    validation = observer_data(
+        context, observer, unforced, max(4, config.train_trajectories // 4), "kkl/validation"
     )
-    return rates, selection
+    x_val, z_val = validation.scored()
+    training = train_decoder(
+        decoder,
+        z,
+        x,
+        config.decoder_steps,
+        config.batch,
+        generator,
+        f"{system.name}: decoder T*",
+        validation=(_tensor(z_val).to(z.device), x_val),
+    )
+    return rates, selection, {"decoder": training.log()}
 
 
 def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel:
@@ -332,12 +368,15 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
                     counting() as spending,
                     training_on(context.device, encoder, decoder) as spending.device,
                 ):
-                    rates, selection = _train_phase1(context, config, encoder, decoder, generator)
+                    rates, selection, log = _train_phase1(
+                        context, config, encoder, decoder, generator
+                    )
                 stored = {
                     "encoder": encoder.state_dict(),
                     "decoder": decoder.state_dict(),
                     "rates": torch.as_tensor(rates),
                     "selection": selection,
+                    "log": log,
                     "spent": spending.as_dict(),
                 }
                 cache.save("kkl-phase1", description, stored)  # before the checkpoints go
@@ -349,7 +388,16 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
     for network in (encoder, decoder):
         network.requires_grad_(False)
     observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
-    model = AutonomousModel(rates, observer, encoder, decoder, selection, description, spent=spent)
+    model = AutonomousModel(
+        rates,
+        observer,
+        encoder,
+        decoder,
+        selection,
+        description,
+        spent=spent,
+        training_log=dict(stored.get("log", {})),
+    )
     model.quality = map_quality(context, model)
     return model
 

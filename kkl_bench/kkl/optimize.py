@@ -1,6 +1,11 @@
 """One Adam loop for every KKL training phase: clipping, cosine schedule, progress bar,
-a ledger of the optimizer steps and samples every training spends, and resumable
-checkpoints for long trainings.
+a ledger of the optimizer steps and samples every training spends, a validation curve,
+and resumable checkpoints for long trainings.
+
+A training given a validation error (an RMSE on validation trajectories of a
+training stream, or its loss on held-out samples) measures it before the first
+step and :data:`VALIDATION_POINTS` times along the way; :func:`converged` reads the
+curve (the rule is protocol section 6.5's).
 
 Inside a :func:`resumable` block every :func:`minimize` call is numbered and
 writes its state (parameters, optimizer, schedule, losses, the block's random
@@ -12,6 +17,7 @@ the result is the same as that of an uninterrupted run for the same seed.
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from collections.abc import Callable, Iterable, Iterator
@@ -57,6 +63,51 @@ class Spent:
             "seconds": self.seconds,
             "device": self.device,
         }
+
+
+VALIDATION_POINTS = 10
+"""Validation errors measured along a training, besides the one before its first step."""
+
+CONVERGENCE_TOLERANCE = 0.05
+"""A training has converged when the second half of its steps lowered the validation
+error by less than this fraction of the best error of the first half (:func:`converged`)."""
+
+
+@dataclass
+class Training:
+    """What one :func:`minimize` call did: the loss of every step and, if it was given a
+    validation error, ``validation``: ``(step, error)`` pairs, step 0 before training."""
+
+    losses: list[float]
+    validation: list[tuple[int, float]] = field(default_factory=list)
+
+    def log(self, last: int = 50) -> dict[str, Any]:
+        """The training log a fit report records: the mean loss of the ``last`` steps and,
+        with a validation curve, the curve and whether it :func:`converged`."""
+        log: dict[str, Any] = {
+            "final_loss": float(sum(self.losses[-last:]) / len(self.losses[-last:]))
+        }
+        if self.validation:
+            log["validation_curve"] = [[step, error] for step, error in self.validation]
+            log["converged"] = converged(self.validation)
+        return log
+
+
+def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None:
+    """Whether the training behind a validation ``curve`` (``(step, error)`` pairs in
+    step order) had converged: its last error is no more than :data:`CONVERGENCE_TOLERANCE`
+    below the best error of the first half of its steps. The second half, not the last
+    quarter: under the cosine schedule the last quarter gets 2.5 % of the learning rate's
+    integral and looks flat whether or not the budget ran out; the second half gets 18 %.
+    An error that rose again counts as converged (more steps would not lower it). None for
+    a curve of fewer than three points, which cannot say."""
+    if len(curve) < 3:
+        return None
+    last_step, last = curve[-1]
+    first_half = [error for step, error in curve if step <= 0.5 * last_step]
+    if not all(math.isfinite(error) for error in (last, *first_half)):
+        return False
+    return last >= (1.0 - CONVERGENCE_TOLERANCE) * min(first_half)
 
 
 _LEDGERS: ContextVar[tuple[Spent, ...]] = ContextVar("kkl_bench_ledgers", default=())
@@ -111,7 +162,7 @@ class _Resume:
         """s of training behind the block's current state, as an uninterrupted run."""
         return time.perf_counter() - self.started + self.credit
 
-    def save(self, call, step, parameters, optimizer, schedule, losses) -> None:
+    def save(self, call, step, parameters, optimizer, schedule, training) -> None:
         self.cache.save(
             RESUME_KIND,
             {**call, "slot": (step // self.every) % len(self.SLOTS)},
@@ -120,18 +171,20 @@ class _Resume:
                 "parameters": [p.detach().clone() for p in parameters],
                 "optimizer": optimizer.state_dict(),
                 "schedule": schedule.state_dict(),
-                "losses": list(losses),
+                "losses": list(training.losses),
+                "validation": list(training.validation),
                 "generators": [g.get_state() for g in self.generators],
                 "seconds": self.elapsed(),
             },
         )
 
-    def restore(self, call, parameters, optimizer, schedule) -> tuple[int, list[float]]:
-        """Load the call's newest whole checkpoint into the training state; ``(step, losses)``."""
+    def restore(self, call, parameters, optimizer, schedule) -> tuple[int, Training]:
+        """Load the call's newest whole checkpoint into the training state; the step it
+        resumes from and the training so far."""
         slots = [self.cache.load(RESUME_KIND, {**call, "slot": slot}) for slot in self.SLOTS]
         stored = max((s for s in slots if s is not None), key=lambda s: s["step"], default=None)
         if stored is None:
-            return 0, []
+            return 0, Training([])
         if len(stored["generators"]) != len(self.generators):
             warnings.warn(
                 f"ignoring the checkpoint of {call['training'].get('kind', 'a training')} at "
@@ -140,7 +193,7 @@ class _Resume:
                 "another version); training from the start",
                 stacklevel=2,
             )
-            return 0, []
+            return 0, Training([])
         with torch.no_grad():
             for parameter, value in zip(parameters, stored["parameters"], strict=True):
                 parameter.copy_(value)
@@ -150,7 +203,8 @@ class _Resume:
             generator.set_state(state)
         if "seconds" in stored:  # written by a version that timed its checkpoints
             self.credit += stored["seconds"] - self.elapsed()
-        return stored["step"], list(stored["losses"])
+        validation = [tuple(point) for point in stored.get("validation", [])]
+        return stored["step"], Training(list(stored["losses"]), validation)
 
 
 _RESUME: ContextVar[_Resume | None] = ContextVar("kkl_bench_resume", default=None)
@@ -187,13 +241,18 @@ def minimize(
     samples_per_step: int,
     lr: float = 1e-3,
     description: str = "training",
-) -> list[float]:
-    """Run ``steps`` Adam steps on ``loss_fn(step)``; returns the loss of every step.
+    validation: Callable[[], float] | None = None,
+) -> Training:
+    """Run ``steps`` Adam steps on ``loss_fn(step)``; returns the loss of every step and the
+    validation curve.
 
     ``samples_per_step`` is how many training samples one ``loss_fn`` call
     draws; with the steps it is recorded in every open :func:`counting`
     block. Gradients are clipped to norm 1 and the learning rate decays along
-    a cosine to 1 % of ``lr``.
+    a cosine to 1 % of ``lr``. ``validation()``, if given, returns the current
+    validation error; it is measured before the first step and every
+    ``ceil(steps / VALIDATION_POINTS)`` steps (and after the last), and must draw from
+    no generator the training draws from.
     """
     parameters = [p for p in parameters if p.requires_grad]
     optimizer = torch.optim.Adam(parameters, lr=lr)
@@ -202,9 +261,12 @@ def minimize(
     )
     resume = _RESUME.get()
     checkpoint = resume.next_call() if resume else None
-    start, losses = (0, [])
+    start, training = (0, Training([]))
     if resume:
-        start, losses = resume.restore(checkpoint, parameters, optimizer, schedule)
+        start, training = resume.restore(checkpoint, parameters, optimizer, schedule)
+    every = math.ceil(steps / VALIDATION_POINTS) if steps else 1
+    if validation is not None and start == 0:
+        training.validation.append((0, float(validation())))
     with tqdm(
         range(start, steps), desc=description, leave=False, disable=None, mininterval=1.0
     ) as bar:
@@ -215,13 +277,15 @@ def minimize(
             torch.nn.utils.clip_grad_norm_(parameters, 1.0)
             optimizer.step()
             schedule.step()
-            losses.append(loss.item())
+            training.losses.append(loss.item())
             if step % 100 == 0:
-                bar.set_postfix(loss=f"{losses[-1]:.3g}")
+                bar.set_postfix(loss=f"{training.losses[-1]:.3g}")
             status.step(description, step + 1, steps)
+            if validation is not None and ((step + 1) % every == 0 or step + 1 == steps):
+                training.validation.append((step + 1, float(validation())))
             if resume and ((step + 1) % resume.every == 0 or step + 1 == steps):
-                resume.save(checkpoint, step + 1, parameters, optimizer, schedule, losses)
+                resume.save(checkpoint, step + 1, parameters, optimizer, schedule, training)
     for spent in _LEDGERS.get():
         spent.steps += steps
         spent.samples += steps * samples_per_step
-    return losses
+    return training

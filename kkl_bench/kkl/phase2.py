@@ -9,7 +9,7 @@ Samples are drawn from the protocol's scored window.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import torch
@@ -52,14 +52,27 @@ class ForcedSamples:
 
     data: ObserverData
     windows: torch.Tensor
+    _tensors: dict[str, torch.Tensor] = field(default_factory=dict, repr=False)
 
     @classmethod
     def simulate(
         cls, context: FitContext, model: AutonomousModel, config: Phase2Config
     ) -> ForcedSamples:
-        data = observer_data(
-            context, model.observer, FORCED_TRAINING, config.phase2_trajectories, "kkl/phase2"
-        )
+        """The training samples: ``phase2_trajectories`` forced trajectories."""
+        return cls._on_stream(context, model, config, config.phase2_trajectories, "kkl/phase2")
+
+    @classmethod
+    def held_out(
+        cls, context: FitContext, model: AutonomousModel, config: Phase2Config
+    ) -> ForcedSamples:
+        """Validation samples: a quarter as many forced trajectories (at least 4), of
+        their own stream."""
+        count = max(4, config.phase2_trajectories // 4)
+        return cls._on_stream(context, model, config, count, "kkl/phase2/validation")
+
+    @classmethod
+    def _on_stream(cls, context, model, config, count: int, stream: str) -> ForcedSamples:
+        data = observer_data(context, model.observer, FORCED_TRAINING, count, stream)
         return cls(data, sliding_windows(data.u, config.window))
 
     def draw(
@@ -74,8 +87,30 @@ class ForcedSamples:
         return trajectory, step
 
     def tensor(self, name: str) -> torch.Tensor:
-        """One of ``x``, ``z``, ``u``, ``y`` as a float32 tensor ``(n, steps, dim)``."""
-        return torch.as_tensor(getattr(self.data, name), dtype=torch.float32)
+        """One of ``x``, ``z``, ``u``, ``y`` as a float32 tensor ``(n, steps, dim)`` (made once)."""
+        if name not in self._tensors:
+            self._tensors[name] = torch.as_tensor(getattr(self.data, name), dtype=torch.float32)
+        return self._tensors[name]
+
+
+VALIDATION_BATCHES = 4
+"""Batches of held-out samples a Phase-2 validation loss averages (:func:`held_out_loss`)."""
+
+
+def held_out_loss(
+    batch_loss: Callable[[ForcedSamples, torch.Generator], torch.Tensor], held_out: ForcedSamples
+) -> Callable[[], float]:
+    """A Phase-2 training's validation error: its loss ``batch_loss(samples, generator)``
+    averaged over :data:`VALIDATION_BATCHES` batches of the ``held_out`` samples, the same
+    batches at every call (drawn from a generator of their own)."""
+
+    def error() -> float:
+        generator = torch.Generator().manual_seed(0)
+        with torch.no_grad():
+            losses = [batch_loss(held_out, generator) for _ in range(VALIDATION_BATCHES)]
+        return float(torch.stack(losses).mean())
+
+    return error
 
 
 def phase2_description(

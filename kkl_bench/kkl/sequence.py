@@ -21,6 +21,7 @@ A network here is an ``nn.Module`` with
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -33,7 +34,7 @@ from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.gain import simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
-from kkl_bench.kkl.optimize import minimize
+from kkl_bench.kkl.optimize import Training, minimize
 from kkl_bench.kkl.phase2 import load_or_train
 from kkl_bench.measurement import held
 from kkl_bench.protocol.metrics import rmse
@@ -96,8 +97,10 @@ def train_windows(
     config: RecurrentConfig,
     seed: int,
     label: str,
-) -> list[float]:
-    """Truncated BPTT over ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)``.
+    validation: Callable[[], float] | None = None,
+) -> Training:
+    """Truncated BPTT over ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)``, with
+    ``validation()`` the validation error :func:`~kkl_bench.kkl.optimize.minimize` records.
 
     Training runs in sweeps: a sweep draws ``rnn_batch`` trajectories
     (a function of ``seed`` and the sweep's number only) and walks them from
@@ -135,25 +138,30 @@ def train_windows(
         config.rnn_batch * window,
         lr=config.rnn_lr,
         description=label,
+        validation=validation,
     )
 
 
 def _train_nominal(context: FitContext, network: nn.Module, config, description) -> dict:
-    """Train ``network`` on the training families; the training log with its validation RMSE."""
+    """Train ``network`` on the training families; the training log with its validation
+    curve (RMSE on validation trajectories of their own stream) and final RMSE."""
     families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
     x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
     yu, x = inputs(y, u, network.observed_channel), torch.as_tensor(x, dtype=torch.float32)
     network.set_normalization(yu, x)
-    losses = train_windows(
-        network, yu, x, config, context.seed, f"{context.system.name}: {description['kind']}"
-    )
     x_val, y_val, u_val = simulate_families(
         context, families, config.rnn_validation, "rnn/validation"
     )
-    return {
-        "final_loss": float(np.mean(losses[-100:])),
-        "validation_rmse": _validation_rmse(network, y_val, u_val, x_val),
-    }
+    training = train_windows(
+        network,
+        yu,
+        x,
+        config,
+        context.seed,
+        f"{context.system.name}: {description['kind']}",
+        lambda: _validation_rmse(network, y_val, u_val, x_val),
+    )
+    return {**training.log(last=100), "validation_rmse": training.validation[-1][1]}
 
 
 def _validation_rmse(network: nn.Module, y, u, x) -> float:
@@ -178,19 +186,22 @@ def _fine_tune(
     nominal = {key: value.clone() for key, value in network.state_dict().items()}
     network.requires_grad_(True)
     tuning = replace(config, rnn_steps=budget.rnn_logged_steps, rnn_lr=budget.rnn_logged_lr)
-    losses = train_windows(
+    training = train_windows(
         network,
         inputs(logged.y[~held_out], logged.u[~held_out], network.observed_channel),
         torch.as_tensor(logged.x[~held_out], dtype=torch.float32),
         tuning,
         context.seed,
         f"{context.system.name}: {description['kind']} on logged data",
+        lambda: _validation_rmse(
+            network, logged.y[held_out], logged.u[held_out], logged.x[held_out]
+        ),
     )
-    after = _validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
+    after = training.validation[-1][1]
     if after >= before:
         network.load_state_dict(nominal)
     return {
-        "final_loss": float(np.mean(losses[-100:])),
+        **training.log(last=100),
         "held_out_rmse_nominal": before,
         "held_out_rmse_fine_tuned": after,
         "fine_tuned": after < before,

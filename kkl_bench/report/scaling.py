@@ -39,6 +39,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                     row.n,
                     f"{row.rmse:.3g}" if ok else f"failed: {row.status}",
                     _cost(row.fit_time_s) if ok else "-",
+                    row.converged if ok else "-",
                     _cost(row.us_per_step_batch20),
                     _cost(row.us_per_step_batch1),
                 ]
@@ -78,13 +79,23 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 "seeds. Fit time: the wall time of every training the fit used, wherever it ran "
                 "(stored with each trained model, so a KKL observer's shared Phase 1 counts in "
                 "every KKL row; '-' for a model trained before training times were recorded). "
+                "Converged: whether every training's validation curve had flattened (protocol "
+                "6.5; 'not recorded' for a model trained before the curves were). "
                 "Online cost: the fastest of three timed calls on the first "
                 f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
                 f"turn in one run on one thread.{_later_runs(frame)}"
             ),
             _table(
                 table,
-                ["Estimator", "n", "RMSE", "Fit time (s)", "µs/step, batch 20", "µs/step, batch 1"],
+                [
+                    "Estimator",
+                    "n",
+                    "RMSE",
+                    "Fit time (s)",
+                    "Converged",
+                    "µs/step, batch 20",
+                    "µs/step, batch 1",
+                ],
             ),
             Text("Fitted exponents p of cost ~ n^p (least squares on log-log):"),
             _table(
@@ -157,8 +168,10 @@ def write_study(cells: pd.DataFrame, timings: pd.DataFrame, profile: str, out: P
     written_by = Section(
         "", [Text("Written by `kkl-bench scaling` (see `docs/protocol.md` section 8).")]
     )
+    sizes = sorted(set(frame["n"]))
     text = markdown.document(
-        "Scaling study: Lorenz-96 from 5 to 40 states", [written_by, study_section(frame, profile)]
+        f"Scaling study: Lorenz-96 from {sizes[0]} to {sizes[-1]} states",
+        [written_by, study_section(frame, profile)],
     )
     study = out / "scaling.md"
     study.write_text(text, encoding="utf-8")

@@ -1,0 +1,35 @@
+"""The board's convergence verdict, read from fit reports."""
+
+from kkl_bench import convergence
+
+TRAINED = {"phase2": {"steps": 10, "samples": 100}}
+
+
+def report(**logs):
+    return {"spent": TRAINED, **logs}
+
+
+def test_a_fit_converged_when_every_training_did():
+    converged = report(
+        phase1_log={"decoder": {"converged": True}}, training_log={"converged": True}
+    )
+    assert convergence.flags(converged) == [True, True]
+    assert convergence.verdict([converged, converged]) == convergence.YES
+
+
+def test_one_training_that_did_not_converge_decides():
+    stalled = report(training_log={"levels": {"sine": {"converged": False}}, "converged": True})
+    assert convergence.verdict([report(training_log={"converged": True}), stalled]) == "no"
+
+
+def test_fits_without_curves_are_not_recorded_and_filters_untrained():
+    assert convergence.verdict([report(training_log={"final_loss": 0.1})]) == "not recorded"
+    assert convergence.verdict([report(training_log={"converged": None})]) == "not recorded"
+    assert convergence.verdict([{"spent": {"phase2": {"steps": 0}}}, {}, None]) == ""
+
+
+def test_the_worst_verdict_of_a_row():
+    assert convergence.worst(["yes", "not recorded", "yes"]) == "not recorded"
+    assert convergence.worst(["yes", "no", "not recorded"]) == "no"
+    assert convergence.worst(["", ""]) == ""
+    assert convergence.worst(["yes", ""]) == "yes"
