@@ -32,3 +32,26 @@ def test_kalmannet_approaches_the_kalman_filter_on_a_linear_system(tmp_path):
     optimal, learned = rms(exact), rms(x_hat)
     print(f"Kalman filter {optimal:.4f}, KalmanNet {learned:.4f}")
     assert learned < 1.3 * optimal
+
+
+def test_the_warm_start_gain_is_the_steady_state_kalman_gain_on_a_linear_system(tmp_path):
+    """On a linear system the EKF is the Kalman filter, whose gain converges to the one of
+    the discrete algebraic Riccati equation: ``ekf_mean_gain`` averages it."""
+    from kkl_bench.estimators.kalmannet import ekf_mean_gain
+    from scipy.linalg import solve_discrete_are
+
+    from kkl_bench.protocol.simulate import rk4_step_jacobian
+
+    context = context_for(HarmonicOscillator(), BUDGET, tmp_path)
+    system = context.system
+    a = rk4_step_jacobian(system, np.zeros(2), np.asarray(0.0), context.dt)
+    h = system.h_jacobian(np.zeros(2))
+    q, r = context.sigma_w**2 * np.eye(2), context.sigma_v**2 * np.eye(1)
+    prior = solve_discrete_are(a.T, h.T, q, r)
+    expected = prior @ h.T @ np.linalg.inv(h @ prior @ h.T + r)
+    np.testing.assert_allclose(ekf_mean_gain(context), expected, rtol=0.02)
+
+
+def test_a_bad_gain_init_is_named():
+    with pytest.raises(ValueError, match="gain_init='ones'; valid: zero, ekf"):
+        KalmanNet(gain_init="ones")
