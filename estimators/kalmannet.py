@@ -50,8 +50,12 @@ from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.gain import simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.sequence import RecurrentConfig, estimates, fit_sequence_model
-from kkl_bench.protocol import PROTOCOL_ID
+from kkl_bench.kkl.sequence import (
+    RecurrentConfig,
+    estimates,
+    fit_sequence_model,
+    model_description,
+)
 from kkl_bench.protocol.metrics import steady_state_start
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
@@ -226,15 +230,13 @@ class KalmanNet(Estimator):
                 observed_channel="sampling" in context.measurement.features,
                 base_gain=None if base_gain is None else torch.as_tensor(base_gain),
             )
-        description = {
-            "kind": KIND,
-            "version": VERSION,
-            "protocol": PROTOCOL_ID,
-            "system": system.name,
-            "system_params": system.params(),
-            "seed": context.seed,
+        description = model_description(
+            KIND,
+            VERSION,
+            system,
+            context.seed,
             **({"gain_init": self.gain_init} if self.gain_init != "zero" else {}),
-        }
+        )
         with thread_limit(1):
             self.report_ = fit_sequence_model(context, network, config, description)
         self.network_ = network

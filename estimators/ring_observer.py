@@ -43,9 +43,13 @@ from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import thread_limit
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.networks import seeded
-from kkl_bench.kkl.sequence import RecurrentConfig, estimates, fit_sequence_model
+from kkl_bench.kkl.sequence import (
+    RecurrentConfig,
+    estimates,
+    fit_sequence_model,
+    model_description,
+)
 from kkl_bench.measurement import MeasurementModel
-from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
@@ -226,16 +230,14 @@ class RingObserver(Estimator):
                 config.rnn_hidden,
                 observed_channel="sampling" in training.measurement.features,
             )
-        description = {
-            "kind": KIND,
-            "version": VERSION,
-            "protocol": PROTOCOL_ID,
-            "system": system.name,
-            "system_params": system.params(),
-            "seed": training.seed,
-            "radius": self.radius,
-            "ring": dataclasses.asdict(ring_config),
-        }
+        description = model_description(
+            KIND,
+            VERSION,
+            system,
+            training.seed,
+            radius=self.radius,
+            ring=dataclasses.asdict(ring_config),
+        )
         with thread_limit(1):
             self.report_ = fit_sequence_model(training, network, config, description)
         self.report_["trained_on"] = system.name

@@ -37,7 +37,9 @@ from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.optimize import Training, minimize
 from kkl_bench.kkl.phase2 import load_or_train
 from kkl_bench.measurement import held
+from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.metrics import rmse
+from kkl_bench.protocol.system import System
 from kkl_bench.registry import regimes
 
 
@@ -205,6 +207,20 @@ def _fine_tune(
         "held_out_rmse_nominal": before,
         "held_out_rmse_fine_tuned": after,
         "fine_tuned": after < before,
+    }
+
+
+def model_description(kind: str, version: int, system: System, seed: int, **extra) -> dict:
+    """The cache description of a sequence network of ``kind`` (its module's ``version``)
+    trained for ``system`` with ``seed``; ``extra`` adds the plugin's own settings."""
+    return {
+        "kind": kind,
+        "version": version,
+        "protocol": PROTOCOL_ID,
+        "system": system.name,
+        "system_params": system.params(),
+        "seed": seed,
+        **extra,
     }
 
 
