@@ -47,6 +47,7 @@ def test_cell_summary_averages_regimes_and_reports_failures():
     assert summary.loc[("big", 5), "fit_time_s"] == 30.0
     assert summary.loc[("big", 10), "status"] == "MemoryError: 40 GB"
     assert math.isnan(summary.loc[("big", 10), "rmse"])
+    assert summary.loc[("ekf", 5), "converged"] == ""  # nothing trained
     with pytest.raises(ValueError, match="no more-systems cells of lorenz96-n5"):
         scaling.cell_summary(results[results["track"] == "paper"])
 
@@ -89,6 +90,7 @@ def frame():
                     rmse=0.1,
                     nrmse=0.01,
                     fit_time_s=fit[i],
+                    converged="" if name == "ekf" else "yes",
                     timing_run=1,
                     timing_commit="abc",
                     us_per_step_batch20=batch20[i],
@@ -195,6 +197,7 @@ def test_report_states_exponents_crossovers_and_failures():
     study.loc[3, ["status", "rmse"]] = ["MemoryError: 40 GB", math.nan]
     text = render_scaling(study, "standard")
     assert "| ekf         | 40  | failed: MemoryError: 40 GB |" in text
+    assert "| Converged " in text and "| yes " in text
     assert "| kkl         | 3.00       | 2.00               | 0.50              |" in text
     assert "| ekf         | -          | 0.00               | 1.00              |" in text
     assert "| kkl         | every n    | every n   |" in text
