@@ -21,12 +21,12 @@ from dataclasses import dataclass
 
 import torch
 
+from kkl_bench.convergence import converged
 from kkl_bench.kkl.autonomous import decoder_rmse, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import observer_data
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.inputs import ConstantFamily, MultiSineFamily, SineFamily, SquareFamily
-from kkl_bench.kkl.optimize import converged
 from kkl_bench.kkl.phase2 import Phase2Config, load_or_train, phase2_description
 from kkl_bench.registry import estimators
 

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from kkl_bench.convergence import converged
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
@@ -40,7 +41,6 @@ from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import GAINS, select_gain, simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
-from kkl_bench.kkl.optimize import converged
 from kkl_bench.kkl.phase2 import load_or_train, phase2_description
 from kkl_bench.protocol.metrics import rmse, steady_state_start
 from kkl_bench.registry import estimators, regimes

@@ -1,7 +1,7 @@
 """Whether a fit's trainings converged, read from its fit report (protocol section 6.5).
 
 Every training of a learned row records a validation curve and whether it
-converged (:func:`kkl_bench.kkl.optimize.converged`) under a ``"converged"`` key
+converged (:func:`converged`) under a ``"converged"`` key
 somewhere in its fit report: the sequence networks' training log, Phase 1's
 decoder (``phase1_log``), ``injection_kkl``'s adaptation, each curriculum level,
 the hypernetworks' second phase. A fit converged when all of them did.
@@ -9,6 +9,7 @@ the hypernetworks' second phase. A fit converged when all of them did.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import Any
 
@@ -17,11 +18,46 @@ YES, NO, UNRECORDED, UNTRAINED = "yes", "no", "not recorded", ""
 without a curve (cached before curves were recorded), nothing trained (a filter)."""
 
 
+CONVERGENCE_TOLERANCE = 0.05
+"""A training has converged when the second half of its steps lowered the validation
+error by less than this fraction of the best error of the first half (:func:`converged`)."""
+
+
+DIVERGED_RATIO = 2.0
+"""A training whose last validation error is above this many times its best did not
+converge (:func:`converged`)."""
+
+
+def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None:
+    """Whether the training behind a validation ``curve`` (``(step, error)`` pairs in
+    step order) had converged: its last error is no more than :data:`CONVERGENCE_TOLERANCE`
+    below the best error of the first half of its steps. The second half, not the last
+    quarter: under the cosine schedule the last quarter gets 2.5 % of the learning rate's
+    integral and looks flat whether or not the budget ran out; the second half gets 18 %.
+    An error that rose a little again counts as converged (more steps would not lower
+    it); one that ended more than :data:`DIVERGED_RATIO` times its best, or not finite,
+    did not converge: the training left its best state (a filter driven to its clip
+    bounds ends flat, but far above where it started). None for a curve of fewer than
+    three points, which cannot say."""
+    if len(curve) < 3:
+        return None
+    last_step, last = curve[-1]
+    errors = [error for _, error in curve]
+    first_half = [error for step, error in curve if step <= 0.5 * last_step]
+    if not all(math.isfinite(error) for error in errors) or last > DIVERGED_RATIO * min(errors):
+        return False
+    return last >= (1.0 - CONVERGENCE_TOLERANCE) * min(first_half)
+
+
 def flags(report: Any) -> list[bool | None]:
-    """Every ``"converged"`` value in a fit ``report`` (nested dicts), in order."""
+    """Whether each training in a fit ``report`` (nested dicts) converged, in order: its
+    ``validation_curve`` read by today's :func:`converged`, else its stored ``"converged"``."""
     if not isinstance(report, dict):
         return []
-    found = [report["converged"]] if "converged" in report else []
+    if "validation_curve" in report:
+        found = [converged(report["validation_curve"])]
+    else:
+        found = [report["converged"]] if "converged" in report else []
     for value in report.values():
         found += flags(value)
     return found

@@ -33,3 +33,11 @@ def test_the_worst_verdict_of_a_row():
     assert convergence.worst(["yes", "no", "not recorded"]) == "no"
     assert convergence.worst(["", ""]) == ""
     assert convergence.worst(["yes", ""]) == "yes"
+
+
+def test_the_verdict_reads_the_curve_not_the_stored_flag():
+    """A report written under an older rule is judged by today's rule from its curve."""
+    stuck = report(
+        training_log={"validation_curve": [[0, 0.3], [50, 37.2], [100, 37.2]], "converged": True}
+    )
+    assert convergence.flags(stuck) == [False]

@@ -5,6 +5,7 @@ import types
 import pytest
 import torch
 
+from kkl_bench import convergence
 from kkl_bench.kkl import optimize
 
 
@@ -74,7 +75,7 @@ def test_the_validation_curve_is_measured_before_training_and_at_every_tenth(tmp
     assert training.validation[0][1] == 1.0 and len(training.losses) == 25
     log = training.log()
     assert log["validation_curve"][-1] == [25, training.validation[-1][1]]
-    assert log["converged"] is optimize.converged(training.validation)
+    assert log["converged"] is convergence.converged(training.validation)
 
 
 def test_a_resumed_training_keeps_its_validation_curve(tmp_path, clock):
@@ -104,9 +105,10 @@ def test_a_resumed_training_keeps_its_validation_curve(tmp_path, clock):
         ([(0, 1.0), (50, 0.40), (75, 0.39), (100, 0.385)], True),  # second half: -3.75 %
         ([(0, 1.0), (50, 0.40), (75, 0.38), (100, 0.37)], False),  # -7.5 %: still improving
         ([(0, 1.0), (25, 0.3), (50, 0.35), (100, 0.36)], True),  # rose again: converged
+        ([(0, 0.3), (50, 37.2), (100, 37.2)], False),  # driven to its clip bounds: flat
         ([(0, 1.0), (100, 0.5)], None),  # too short to say
         ([(0, 1.0), (75, float("nan")), (100, 0.5)], False),  # diverged on the way
     ],
 )
 def test_the_convergence_rule_reads_the_second_half(curve, expected):
-    assert optimize.converged(curve) is expected
+    assert convergence.converged(curve) is expected

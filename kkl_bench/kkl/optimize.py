@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from kkl_bench import status
+from kkl_bench.convergence import converged
 from kkl_bench.kkl.cache import CheckpointCache
 
 RESUME_KIND = "kkl-resume"
@@ -68,10 +69,6 @@ class Spent:
 VALIDATION_POINTS = 10
 """Validation errors measured along a training, besides the one before its first step."""
 
-CONVERGENCE_TOLERANCE = 0.05
-"""A training has converged when the second half of its steps lowered the validation
-error by less than this fraction of the best error of the first half (:func:`converged`)."""
-
 
 @dataclass
 class Training:
@@ -91,23 +88,6 @@ class Training:
             log["validation_curve"] = [[step, error] for step, error in self.validation]
             log["converged"] = converged(self.validation)
         return log
-
-
-def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None:
-    """Whether the training behind a validation ``curve`` (``(step, error)`` pairs in
-    step order) had converged: its last error is no more than :data:`CONVERGENCE_TOLERANCE`
-    below the best error of the first half of its steps. The second half, not the last
-    quarter: under the cosine schedule the last quarter gets 2.5 % of the learning rate's
-    integral and looks flat whether or not the budget ran out; the second half gets 18 %.
-    An error that rose again counts as converged (more steps would not lower it). None for
-    a curve of fewer than three points, which cannot say."""
-    if len(curve) < 3:
-        return None
-    last_step, last = curve[-1]
-    first_half = [error for step, error in curve if step <= 0.5 * last_step]
-    if not all(math.isfinite(error) for error in (last, *first_half)):
-        return False
-    return last >= (1.0 - CONVERGENCE_TOLERANCE) * min(first_half)
 
 
 _LEDGERS: ContextVar[tuple[Spent, ...]] = ContextVar("kkl_bench_ledgers", default=())
