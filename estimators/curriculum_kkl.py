@@ -24,7 +24,7 @@ import torch
 from kkl_bench.convergence import converged
 from kkl_bench.kkl.autonomous import decoder_rmse, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
-from kkl_bench.kkl.data import observer_data
+from kkl_bench.kkl.data import observer_data, validation_count
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.inputs import ConstantFamily, MultiSineFamily, SineFamily, SquareFamily
 from kkl_bench.kkl.phase2 import Phase2Config, load_or_train, phase2_description
@@ -96,19 +96,16 @@ class CurriculumKKL(KKLEstimator):
         decoder.requires_grad_(True)
         log = {}
         for index, (level, family) in enumerate(LEVELS):
-            pairs = {
-                split: observer_data(context, model.observer, family, count, stream).scored()
-                for split, count, stream in (
-                    ("train", data_config.phase2_trajectories, f"kkl/curriculum/{index}"),
-                    (
-                        "validation",
-                        max(4, data_config.phase2_trajectories // 4),
-                        f"kkl/curriculum/{index}/validation",
-                    ),
-                )
-            }
-            x, z = (torch.as_tensor(a, dtype=torch.float32) for a in pairs["train"])
-            x_val, z_val = pairs["validation"]
+            count = data_config.phase2_trajectories
+            train = observer_data(context, model.observer, family, count, f"kkl/curriculum/{index}")
+            x, z = (torch.as_tensor(a, dtype=torch.float32) for a in train.scored())
+            x_val, z_val = observer_data(
+                context,
+                model.observer,
+                family,
+                validation_count(count),
+                f"kkl/curriculum/{index}/validation",
+            ).scored()
             validation_rmse = decoder_rmse(
                 decoder, torch.as_tensor(z_val, dtype=torch.float32), x_val
             )

@@ -102,17 +102,21 @@ class DynamicHyperKKL(KKLEstimator):
         forced samples as the validation curve."""
         system = context.system
         samples = ForcedSamples.simulate(context, model, config)
+        held_out = ForcedSamples.held_out(context, model, config)
+        pool, held_out_pool = _pool(samples), _pool(held_out)
         encoder, decoder = model.encoder, model.decoder
         a, b = (
             torch.as_tensor(m, dtype=torch.float32) for m in (model.observer.a, model.observer.b)
         )
         g = torch.as_tensor(system.g, dtype=torch.float32)
-        field_scale = normalized_field_rms(encoder, system.f(_pool(samples)))
+        field_scale = normalized_field_rms(encoder, system.f(pool))
         n_windows = max(1, config.phase2_batch // config.collocation_points)
 
-        def batch_loss(samples: ForcedSamples, generator: torch.Generator) -> torch.Tensor:
+        def batch_loss(
+            samples: ForcedSamples, pool: torch.Tensor, generator: torch.Generator
+        ) -> torch.Tensor:
+            """The loss on a batch of ``samples``, collocation states drawn from ``pool``."""
             x, z_observed, u = samples.tensor("x"), samples.tensor("z"), samples.tensor("u")
-            pool = _pool(samples)
             trajectory, step = samples.draw(n_windows, generator, last_offset=1)
             contexts, zero = hyper.contexts(
                 torch.cat(
@@ -149,12 +153,14 @@ class DynamicHyperKKL(KKLEstimator):
             )
 
         return minimize(
-            lambda _: batch_loss(samples, generator),
+            lambda _: batch_loss(samples, pool, generator),
             hyper.parameters(),
             config.phase2_steps,
             n_windows * config.collocation_points,
             description=f"{system.name}: hypernetwork",
-            validation=held_out_loss(batch_loss, ForcedSamples.held_out(context, model, config)),
+            validation=held_out_loss(
+                lambda generator: batch_loss(held_out, held_out_pool, generator)
+            ),
         ).log()
 
     def estimate(self, t, y, u):

@@ -37,6 +37,7 @@ from kkl_bench.convergence import converged
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
+from kkl_bench.kkl.data import validation_count
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import GAINS, select_gain, simulate_families
@@ -123,7 +124,7 @@ def adapt(
     families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
     x, y, u = simulate_families(context, families, config.adaptation_trajectories, "kkl/adapt")
     x_val, y_val, u_val = simulate_families(
-        context, families, max(4, config.adaptation_trajectories // 4), "kkl/adapt/curve"
+        context, families, validation_count(config.adaptation_trajectories), "kkl/adapt/curve"
     )
 
     def validation_rmse() -> float:  # the injected observer's, on its own trajectories

@@ -184,6 +184,16 @@ def optimal_proposal(
     return sample, proposal.log_density(sample) - gaussian_log_density(sample - mean, q)
 
 
+def _draw_components(draws: np.ndarray, log_weights: np.ndarray, uniform: np.ndarray) -> np.ndarray:
+    """One draw per point from a mixture: ``draws: (..., d, components)`` each component's
+    draw, ``log_weights: (..., components)`` the components' normalised log weights
+    (broadcasting against ``uniform``), ``uniform: (...)`` uniform numbers that pick the
+    component -> ``(..., d)``."""
+    chosen = (uniform[..., None] > np.cumsum(np.exp(log_weights), axis=-1)).sum(axis=-1)
+    chosen = np.minimum(chosen, draws.shape[-1] - 1)
+    return np.take_along_axis(draws, chosen[..., None, None], axis=-1)[..., 0]
+
+
 def mixture_proposal(
     system: System,
     mean: np.ndarray,
@@ -209,10 +219,8 @@ def mixture_proposal(
         axis=-1,
     )
     log_weights = log_weights - logsumexp(log_weights, axis=-1, keepdims=True)
-    chosen = (uniform[..., None] > np.cumsum(np.exp(log_weights), axis=-1)).sum(axis=-1)
-    chosen = np.minimum(chosen, len(components) - 1)
     draws = np.stack([p.sample(w, v) for p in proposals], axis=-1)  # (..., n_x, components)
-    sample = np.take_along_axis(draws, chosen[..., None, None], axis=-1)[..., 0]
+    sample = _draw_components(draws, log_weights, uniform)
     log_proposal = logsumexp(
         np.stack([p.log_density(sample) for p in proposals], axis=-1) + log_weights, axis=-1
     )
@@ -262,10 +270,8 @@ def initial_proposal(
         axis=-1,
     )  # (batch, components)
     log_weights -= logsumexp(log_weights, axis=-1, keepdims=True)
-    chosen = (uniform[..., None] > np.cumsum(np.exp(log_weights), axis=-1)[:, None, :]).sum(-1)
-    chosen = np.minimum(chosen, len(components) - 1)  # (batch, n)
     draws = np.stack([m[:, None, :] + standard @ c.T for m, c, _ in posteriors], axis=-1)
-    particles = np.take_along_axis(draws, chosen[..., None, None], axis=-1)[..., 0]
+    particles = _draw_components(draws, log_weights[:, None, :], uniform)
     log_density = logsumexp(
         np.stack(
             [
@@ -358,7 +364,9 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
         batch, steps, _ = y.shape
         x_hat = np.full((batch, steps, system.n_x), np.nan)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            particles, log_weights = self._initial(system, y[:, 0], r, normals, uniforms)
+            particles, log_weights = self._initial(
+                system, y[:, 0], mixture or ((1.0, r),), normals, uniforms
+            )
             for k in range(steps):
                 if k > 0:
                     mean = rk4_step(
@@ -407,26 +415,25 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
             np.isnan(x_hat).any(axis=-1, keepdims=True).cumsum(axis=1) > 0, np.nan, x_hat
         )
 
-    def _initial(self, system: System, y0: np.ndarray, r: float, normals, uniforms):
+    def _initial(self, system: System, y0: np.ndarray, components, normals, uniforms):
         """Particles ``(batch, n, n_x)`` and log weights ``(batch, n)`` for the first sample
         (``normals(dim)``, ``uniforms()``: each trajectory's draws ``(batch, n, dim)``,
         ``(batch, n)``).
 
         Proposal: :func:`initial_proposal` from the box's Gaussian moments (covariance
-        inflated), ``h`` linearised at the box centre and the noise law's components (one
-        of variance ``r`` unless the law is a mixture); weight ``1_box p(y0 | x) / q(x)``.
+        inflated), ``h`` linearised at the box centre and the noise law's ``components``
+        (``((1, r),)`` unless the law is a mixture); weight ``1_box p(y0 | x) / q(x)``.
         """
         context = self.check_fitted()
         centre, covariance = box_prior(context)
-        mixture = context.measurement.mixture if system.n_y == 1 else None
         particles, log_proposal = initial_proposal(
             centre,
             _PRIOR_INFLATION * covariance,
             system.h_jacobian(centre),
             y0 - system.h(centre),
-            mixture or ((1.0, r),),
+            components,
             normals(system.n_x),
-            uniforms() if mixture else None,
+            uniforms() if len(components) > 1 else None,
         )
         inside = np.all((particles >= context.x0_low) & (particles <= context.x0_high), axis=-1)
         log_likelihood = context.measurement.log_density(y0[:, None, :], system.h(particles))

@@ -113,13 +113,14 @@ class StaticHyperKKL(KKLEstimator):
             return (injection(z_tilde, contexts) - target).pow(2).sum(-1).mean()
 
         samples = ForcedSamples.simulate(context, model, config)
+        held_out = ForcedSamples.held_out(context, model, config)
         return minimize(
             lambda _: batch_loss(samples, generator),
             injection.parameters(),
             config.phase2_steps,
             config.phase2_batch,
             description=f"{context.system.name}: injection psi",
-            validation=held_out_loss(batch_loss, ForcedSamples.held_out(context, model, config)),
+            validation=held_out_loss(lambda generator: batch_loss(held_out, generator)),
         ).log()
 
     def _injection(self, u: np.ndarray, gain: float):

@@ -30,7 +30,13 @@ from kkl_bench.devices import draw_integers, draw_normal, to_numpy, training_on
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
-from kkl_bench.kkl.data import Box, ObserverData, burn_in_steps, observer_data
+from kkl_bench.kkl.data import (
+    Box,
+    ObserverData,
+    burn_in_steps,
+    observer_data,
+    validation_count,
+)
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.latent import (
     LatentObserver,
@@ -223,9 +229,10 @@ def _select_rates(
     train_inputs: InputFamily,
     boxes: list[Box],
     generator: torch.Generator,
-) -> tuple[np.ndarray, dict[str, float]]:
+) -> tuple[np.ndarray, dict[str, float], ObserverData]:
     """The candidate rate range with the lowest validation RMSE of a briefly trained decoder
-    (validation trajectories start in the protocol's x0 box, on their own stream)."""
+    (validation trajectories start in the protocol's x0 box, on their own stream), the
+    score of each range, and the validation data observed with the chosen rates."""
     system = context.system
     scores = {}
     best = None
@@ -239,7 +246,7 @@ def _select_rates(
             context,
             observer,
             train_inputs,
-            max(4, config.train_trajectories // 4),
+            validation_count(config.train_trajectories),
             "kkl/validation",
         )
         x, z = (_tensor(a) for a in train.scored())
@@ -259,8 +266,8 @@ def _select_rates(
         rmse = decoder_rmse(decoder, _tensor(z_val), x_val)()
         scores[f"{slowest:g}-{fastest:g}"] = rmse
         if best is None or rmse < best[0]:
-            best = (rmse, rates)
-    return best[1], scores
+            best = (rmse, rates, validation)
+    return best[1], scores, best[2]
 
 
 def _train_encoder(
@@ -318,7 +325,7 @@ def _train_phase1(
     system = context.system
     unforced = regimes.get("zero")()
     boxes = training_boxes(context, config)
-    rates, selection = _select_rates(context, config, unforced, boxes, generator)
+    rates, selection, validation = _select_rates(context, config, unforced, boxes, generator)
     observer = LatentObserver(*latent_matrices(rates, system.n_y), context.dt)
     data = observer_data(
         context, observer, unforced, config.train_trajectories, "kkl/phase1", boxes
@@ -326,9 +333,6 @@ def _train_phase1(
     _train_encoder(context, config, encoder, data, rates, generator)
     x, z = (_tensor(a) for a in data.scored())
     decoder.set_normalization(z, x)
-    validation = observer_data(
-        context, observer, unforced, max(4, config.train_trajectories // 4), "kkl/validation"
-    )
     x_val, z_val = validation.scored()
     training = train_decoder(
         decoder,

@@ -83,6 +83,12 @@ def observer_data(
     return ObserverData(x, observer.run(y), y, u)
 
 
+def validation_count(training_count: int) -> int:
+    """How many validation trajectories a training on ``training_count`` draws to record
+    its validation curve (protocol section 6.5): a quarter, at least 4."""
+    return max(4, training_count // 4)
+
+
 def burn_in_steps(rates: np.ndarray, dt: float) -> int:
     """Samples until the slowest latent mode has decayed by ``e^-10``."""
     return int(np.ceil(10.0 / (min(rates) * dt)))

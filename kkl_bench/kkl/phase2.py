@@ -20,7 +20,7 @@ from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
-from kkl_bench.kkl.data import ObserverData, observer_data
+from kkl_bench.kkl.data import ObserverData, observer_data, validation_count
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
 from kkl_bench.kkl.optimize import counting, resumable
@@ -67,7 +67,7 @@ class ForcedSamples:
     ) -> ForcedSamples:
         """Validation samples: a quarter as many forced trajectories (at least 4), of
         their own stream."""
-        count = max(4, config.phase2_trajectories // 4)
+        count = validation_count(config.phase2_trajectories)
         return cls._on_stream(context, model, config, count, "kkl/phase2/validation")
 
     @classmethod
@@ -98,16 +98,17 @@ VALIDATION_BATCHES = 4
 
 
 def held_out_loss(
-    batch_loss: Callable[[ForcedSamples, torch.Generator], torch.Tensor], held_out: ForcedSamples
+    batch_loss: Callable[[torch.Generator], torch.Tensor],
 ) -> Callable[[], float]:
-    """A Phase-2 training's validation error: its loss ``batch_loss(samples, generator)``
-    averaged over :data:`VALIDATION_BATCHES` batches of the ``held_out`` samples, the same
-    batches at every call (drawn from a generator of their own)."""
+    """A Phase-2 training's validation error: its loss on a batch of held-out samples
+    (:meth:`ForcedSamples.held_out`) drawn from ``generator``, ``batch_loss(generator)``,
+    averaged over :data:`VALIDATION_BATCHES` batches, the same batches at every call
+    (drawn from a generator of their own)."""
 
     def error() -> float:
         generator = torch.Generator().manual_seed(0)
         with torch.no_grad():
-            losses = [batch_loss(held_out, generator) for _ in range(VALIDATION_BATCHES)]
+            losses = [batch_loss(generator) for _ in range(VALIDATION_BATCHES)]
         return float(torch.stack(losses).mean())
 
     return error
