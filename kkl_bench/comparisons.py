@@ -4,7 +4,7 @@ the particle filter's Bayes limit."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import numpy as np
 import pandas as pd
@@ -179,39 +179,63 @@ def limit_table(summary: pd.DataFrame, id: str = "limit") -> Table | None:
 
 CALIBRATED = "ukf+logged"
 """The calibrate-then-filter row the learned ``+logged`` rows are compared with."""
+GAUSSIAN_FILTERS = ("ekf", "ukf", "enkf")
+"""The filters given the exact model that a learned row must beat on the ``hard`` track."""
+
+
+def best_against_best(
+    summary: pd.DataFrame, first: Collection[str], second: Collection[str], track: str
+) -> pd.DataFrame:
+    """Per cell of ``track`` (its :func:`~kkl_bench.summary.summary_table`): the row of
+    ``first`` with the lowest mean RMSE against the lowest of ``second``, both among the
+    rows with no diverged trajectory; their RMSEs (``rmse_a``, ``rmse_b``), names (``a``,
+    ``b``), the ratio, its 90 % interval and the verdict of
+    :func:`~kkl_bench.significance.compare` (``"a lower"``, ``"b lower"``, ``"not
+    distinguishable"``). Cells where either side has no such row are left out; empty if
+    none is left."""
+    ok = summary[(summary["status"] == "ok") & (summary["n_diverged"] == 0)]
+    cells = dict(iter(ok.groupby(["system", "regime"])))
+    rows = []
+    for system in in_paper_order(ok["system"], SYSTEM_TITLES):
+        for regime in task_order(ok):
+            cell = cells.get((system, regime), ok.iloc[:0])
+            sides = [cell[cell["estimator"].isin(names)] for names in (first, second)]
+            if any(side.empty for side in sides):
+                continue
+            a, b = (side.loc[side["rmse_mean"].idxmin()] for side in sides)
+            result = compare(np.asarray(a["rmse_trajectories"]), np.asarray(b["rmse_trajectories"]))
+            rows.append(
+                {
+                    "condition": condition(track, regime),
+                    "cell": f"{SYSTEM_TITLES.get(system, system)} {regime}",
+                    "rmse_a": a["rmse_mean"],
+                    "rmse_b": b["rmse_mean"],
+                    "a": a["estimator"],
+                    "b": b["estimator"],
+                    **result,
+                }
+            )
+    return pd.DataFrame(rows)
 
 
 def calibrated_versus_learned(summary: pd.DataFrame, track: str) -> pd.DataFrame:
-    """Per cell of ``track`` (its :func:`~kkl_bench.summary.summary_table`): the calibrated
-    UKF's RMSE against the lowest learned ``+logged`` row's, with the ratio, its 90 %
-    interval and the verdict of :func:`~kkl_bench.significance.compare` (``"a lower"``:
-    calibrate-then-filter is lower). Empty without both kinds of rows."""
-    ok = summary[(summary["status"] == "ok") & (summary["n_diverged"] == 0)]
-    indexed = ok.set_index(["estimator", "system", "regime"])
-    learned = sorted(
+    """:func:`best_against_best` of the calibrated UKF (:data:`CALIBRATED`, ``a``) and the
+    learned ``+logged`` rows (``b``): ``"a lower"`` means calibrate-then-filter is lower."""
+    learned = [
         name
-        for name in set(ok["estimator"])
+        for name in set(summary["estimator"])
         if name.endswith("+logged")
         and variants.base_name(variants.split_logged(name)[0]) not in MODEL_BASED
-    )
-    rows = []
-    for (system, regime), cell in ok.groupby(["system", "regime"], sort=False):
-        rivals = cell[cell["estimator"].isin(learned)]
-        if (CALIBRATED, system, regime) not in indexed.index or rivals.empty:
-            continue
-        best = rivals.loc[rivals["rmse_mean"].idxmin()]
-        ours = indexed.loc[(CALIBRATED, system, regime)]
-        result = compare(
-            np.asarray(ours["rmse_trajectories"]), np.asarray(best["rmse_trajectories"])
-        )
-        rows.append(
-            {
-                "condition": condition(track, regime),
-                "cell": f"{SYSTEM_TITLES.get(system, system)} {regime}",
-                "rmse_a": ours["rmse_mean"],
-                "rmse_b": best["rmse_mean"],
-                "learned": best["estimator"],
-                **result,
-            }
-        )
-    return pd.DataFrame(rows)
+    ]
+    return best_against_best(summary, [CALIBRATED], learned, track)
+
+
+def learned_versus_filters(summary: pd.DataFrame, track: str) -> pd.DataFrame:
+    """:func:`best_against_best` of the learned rows (``a``: every row not in
+    :data:`MODEL_BASED`) and the Gaussian filters (:data:`GAUSSIAN_FILTERS`, ``b``):
+    ``"a lower"`` means a learned row beats every filter that did not diverge."""
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    learned = [
+        name for name in set(ours["estimator"]) if variants.base_name(name) not in MODEL_BASED
+    ]
+    return best_against_best(ours, learned, GAUSSIAN_FILTERS, track)

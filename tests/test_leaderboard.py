@@ -273,6 +273,60 @@ def test_limit_frame_divides_by_the_particle_filter_and_names_the_best_learned_r
     assert limit_frame(summary[summary["estimator"] != "particle_filter"]).empty
 
 
+def test_learned_versus_filters_pits_the_best_learned_row_against_the_best_filter():
+    """Per cell: the lowest learned row against the lowest Gaussian filter; a diverged row
+    is left out, the particle filter is neither side, the verdict is the paired test's."""
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.9, 1.1, size=40)
+
+    def row(estimator, regime, factor, diverged=0, jitter=0.0):
+        rmse = factor * base * rng.uniform(1 - jitter, 1 + jitter, size=base.size)
+        if diverged:
+            rmse = rmse.copy()
+            rmse[0] = math.inf
+        return {
+            "estimator": estimator,
+            "track": "hard",
+            "system": "vdp",
+            "regime": regime,
+            "status": "ok",
+            "n_diverged": diverged,
+            "rmse_mean": float(np.mean(rmse[np.isfinite(rmse)])),
+            "rmse_trajectories": rmse[None, :],
+        }
+
+    summary = pd.DataFrame(
+        [
+            row("particle_filter", "sparse-sinusoid", 0.1),
+            row("ukf", "sparse-sinusoid", 0.5, diverged=1),
+            row("enkf", "sparse-sinusoid", 2.0),
+            row("ekf", "sparse-sinusoid", 3.0),
+            row("gru_observer", "sparse-sinusoid", 1.0),
+            row("kalmannet", "sparse-sinusoid", 1.5),
+            row("ukf", "outliers-sinusoid", 1.0),
+            row("gru_observer", "outliers-sinusoid", 1.0, jitter=0.3),
+            row("ukf", "quantized-sinusoid", 1.0),
+        ]
+    )
+    frame = comparisons.learned_versus_filters(summary, "hard")
+    records = frame[["cell", "a", "b", "verdict"]].to_dict("records")
+    assert records == [
+        {
+            "cell": "Van der Pol sparse-sinusoid",
+            "a": "gru_observer",
+            "b": "enkf",
+            "verdict": "a lower",
+        },
+        {
+            "cell": "Van der Pol outliers-sinusoid",
+            "a": "gru_observer",
+            "b": "ukf",
+            "verdict": "not distinguishable",
+        },
+    ]
+    assert frame["ratio"].iloc[0] == pytest.approx(0.5)
+
+
 def comparison_table(summary, a, b):
     return table(comparisons.comparison_table(summary, a, b))
 

@@ -5,7 +5,12 @@ from __future__ import annotations
 
 import pandas as pd
 
-from kkl_bench.comparisons import calibrated_versus_learned, comparison_cells, limit_table
+from kkl_bench.comparisons import (
+    calibrated_versus_learned,
+    comparison_cells,
+    learned_versus_filters,
+    limit_table,
+)
 from kkl_bench.leaderboard import grid_tables, track_summary_table
 from kkl_bench.plants import true_plant
 from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
@@ -117,35 +122,42 @@ VERSUS_TEXT = (
     "the marks; *lower* where the interval lies below (calibrated lower) or above "
     "(learned lower) 1."
 )
+AGAINST_FILTERS_TEXT = (
+    "Can a learned row beat the Gaussian filters that are handed the exact model? Per "
+    "cell, the learned row with the lowest RMSE against the lowest of `ekf`, `ukf` and "
+    "`enkf` (rows with a diverged trajectory left out): the ratio of their RMSEs with its "
+    "90 % interval from the paired bootstrap of the marks (trajectories and training "
+    "seeds resampled); *lower* where the interval lies below (learned lower) or above "
+    "(filter lower) 1, *undecided* otherwise."
+)
 
 
-def versus_blocks(summary: pd.DataFrame, track: str) -> list:
-    """The calibrate-or-learn comparison of ``track`` with a tally per condition."""
-    frame = calibrated_versus_learned(summary, track)
+def versus_blocks(
+    frame: pd.DataFrame, text: str, sides: tuple[str, str], headers: tuple[str, str], id: str
+) -> list:
+    """A :func:`~kkl_bench.comparisons.best_against_best` frame as a table with a tally per
+    condition: ``sides`` name its two sides in verdicts (``"calibrated"``, ``"learned"``),
+    ``headers`` its two RMSE columns."""
     if frame.empty:
         return []
-    names = {"a lower": "calibrated lower", "b lower": "learned lower"}
-    verdicts = [names.get(verdict, verdict) for verdict in frame["verdict"]]
+    names = {"a lower": f"{sides[0]} lower", "b lower": f"{sides[1]} lower"}
+    verdicts = [names.get(verdict, "undecided") for verdict in frame["verdict"]]
     tallies = "; ".join(
-        f"`{name}`: calibrated lower in {(rows['verdict'] == 'a lower').sum()} of {len(rows)} "
-        f"cells, learned lower in {(rows['verdict'] == 'b lower').sum()}"
+        f"`{name}`: {sides[0]} lower in {(rows['verdict'] == 'a lower').sum()} of "
+        f"{len(rows)} cells, {sides[1]} lower in {(rows['verdict'] == 'b lower').sum()}"
         for name, rows in frame.groupby("condition", sort=False)
     )
-    headers = [
-        "Cell (best learned row)",
-        "RMSE `ukf+logged`",
-        "RMSE learned",
-        "ratio",
-        "90 % interval",
-        "verdict",
-    ]
     cells = [
-        f"{cell} (`{name}`)" for cell, name in zip(frame["cell"], frame["learned"], strict=True)
+        f"{cell} (`{a}` against `{b}`)"
+        for cell, a, b in zip(frame["cell"], frame["a"], frame["b"], strict=True)
     ]
     table = comparison_cells(
-        frame.assign(cell=cells), verdicts, headers, id=f"track-{track}-versus"
+        frame.assign(cell=cells),
+        verdicts,
+        ["Cell (rows compared)", *headers, "ratio", "90 % interval", "verdict"],
+        id=id,
     )
-    return [Text(f"{VERSUS_TEXT} By condition: {tallies}."), table]
+    return [Text(f"{text} By condition: {tallies}."), table]
 
 
 CALIBRATION_TEXT = (
@@ -221,7 +233,25 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
         )
     calibrated = calibration_table(board.tables.cells[name], name)
     if calibrated is not None:
-        blocks += [Text(CALIBRATION_TEXT), calibrated, *versus_blocks(summary, name)]
+        blocks += [
+            Text(CALIBRATION_TEXT),
+            calibrated,
+            *versus_blocks(
+                calibrated_versus_learned(summary, name),
+                VERSUS_TEXT,
+                ("calibrated", "learned"),
+                ("RMSE calibrated", "RMSE learned"),
+                id=f"track-{name}-versus",
+            ),
+        ]
+    if track is not None and track.fitted_per_task:
+        blocks += versus_blocks(
+            learned_versus_filters(summary, name),
+            AGAINST_FILTERS_TEXT,
+            ("learned", "filter"),
+            ("RMSE learned", "RMSE filter"),
+            id=f"track-{name}-against-filters",
+        )
     blocks.append(Figure(f"relative-rmse-{name}", f"{name}: RMSE relative to the UKF"))
     blocks += [
         Figure(figure, figure)
