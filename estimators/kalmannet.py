@@ -38,6 +38,8 @@ a loaded 2-core machine, 0.3 ms with one).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 from kkl_bench.estimators.ekf import ExtendedKalman
@@ -172,6 +174,12 @@ class KalmanNetFilter(nn.Module):
 
 GAIN_INITS = ("zero", "ekf")
 
+EKF_INIT_LR_SCALE = 0.1
+"""With ``gain_init="ekf"`` the learning rate is the budget's ``rnn_lr`` times this: the
+network corrects a filter that already tracks, and at the full rate (3e-3) the first 30
+Adam steps threw Lorenz-96 n = 10 to its clip bounds (validation RMSE 0.30 -> 37.2);
+at 3e-4 it fell to 0.038 in 300 steps (protocol section 6.2)."""
+
 EKF_GAIN_TRAJECTORIES = 4
 """Unforced and as many forced training-stream trajectories the EKF's mean gain is taken on."""
 
@@ -203,7 +211,8 @@ class KalmanNet(Estimator):
     ----------
     gain_init: ``"zero"`` (the paper's): the gain starts near zero, the open-loop model;
         ``"ekf"``: the network learns a correction to the EKF's mean gain
-        (:func:`ekf_mean_gain`), so training starts from a filter that tracks.
+        (:func:`ekf_mean_gain`), so training starts from a filter that tracks, at a
+        tenth of the learning rate (:data:`EKF_INIT_LR_SCALE`).
     """
 
     name = "kalmannet"
@@ -220,7 +229,10 @@ class KalmanNet(Estimator):
     def fit(self, context: FitContext):
         config = from_budget(RecurrentConfig, context)
         system = context.system
-        base_gain = ekf_mean_gain(context) if self.gain_init == "ekf" else None
+        base_gain = None
+        if self.gain_init == "ekf":
+            base_gain = ekf_mean_gain(context)
+            config = replace(config, rnn_lr=EKF_INIT_LR_SCALE * config.rnn_lr)
         with seeded(context.seed):
             network = KalmanNetFilter(
                 system,

@@ -55,3 +55,22 @@ def test_the_warm_start_gain_is_the_steady_state_kalman_gain_on_a_linear_system(
 def test_a_bad_gain_init_is_named():
     with pytest.raises(ValueError, match="gain_init='ones'; valid: zero, ekf"):
         KalmanNet(gain_init="ones")
+
+
+@pytest.mark.parametrize(("gain_init", "scale"), [("zero", 1.0), ("ekf", 0.1)])
+def test_the_warm_started_correction_trains_at_a_tenth_of_the_rate(
+    tmp_path, monkeypatch, gain_init, scale
+):
+    """A correction to a filter that tracks takes smaller steps (protocol section 6.2)."""
+    from kkl_bench.estimators import kalmannet
+
+    seen = {}
+
+    def capture(context, network, config, description):
+        seen["lr"] = config.rnn_lr
+        return {}
+
+    monkeypatch.setattr(kalmannet, "fit_sequence_model", capture)
+    context = context_for(HarmonicOscillator(), BUDGET, tmp_path)
+    KalmanNet(gain_init=gain_init).fit(context)
+    assert seen["lr"] == pytest.approx(scale * BUDGET["rnn_lr"])
