@@ -28,7 +28,7 @@ import pandas as pd
 from tabulate import tabulate
 
 from kkl_bench import convergence
-from kkl_bench.comparisons import LIMIT, TRUTH_LIMIT
+from kkl_bench.comparisons import limit_rows
 from kkl_bench.report import markdown
 from kkl_bench.report.model import Table
 from kkl_bench.significance import MARGIN
@@ -144,17 +144,11 @@ def _system_groups(summary: pd.DataFrame, settling: bool, systems_per_table: int
 
 
 def best_possible(summary: pd.DataFrame) -> pd.Series:
-    """Per (system, regime): the particle filter's RMSE (the Bayes limit; the ``+truth``
-    row's where there is one) where it was scored, else the lowest RMSE of the column's
-    rows (the paper's left out)."""
+    """Per (system, regime): the Bayes limit's RMSE (:func:`~kkl_bench.comparisons.limit_rows`)
+    where it was scored, else the lowest RMSE of the column's rows (the paper's left out)."""
     ours = summary[(summary["status"] == "ok") & ~summary["estimator"].str.startswith(PAPER_PREFIX)]
-    finite = ours[np.isfinite(ours["rmse_mean"])]
-    lowest = finite.groupby(["system", "regime"])["rmse_mean"].min()
-    best = lowest
-    for row in (LIMIT, TRUTH_LIMIT):
-        limit = finite[finite["estimator"] == row].set_index(["system", "regime"])["rmse_mean"]
-        best = limit.combine_first(best)
-    return best
+    lowest = ours[np.isfinite(ours["rmse_mean"])].groupby(["system", "regime"])["rmse_mean"].min()
+    return limit_rows(summary)["rmse"].astype(float).combine_first(lowest)
 
 
 def grid_tables(

@@ -262,6 +262,7 @@ def test_limit_frame_divides_by_the_particle_filter_and_names_the_best_learned_r
         {
             "system": "vdp",
             "regime": "sinusoid",
+            "limit_row": "particle_filter",
             "limit_rmse": 0.10,
             "ekf": pytest.approx(1.1),
             "ukf": pytest.approx(1.05),
@@ -271,6 +272,45 @@ def test_limit_frame_divides_by_the_particle_filter_and_names_the_best_learned_r
         }
     ]
     assert limit_frame(summary[summary["estimator"] != "particle_filter"]).empty
+
+
+@pytest.mark.parametrize(
+    ("rows", "expected"),
+    [
+        # the most particles stand for the limit; fewer, or another proposal, do not
+        (
+            [
+                ("particle_filter", 0.10),
+                ("particle_filter[n=20000]", 0.08),
+                ("particle_filter[n=100]", 0.05),
+                ("particle_filter[n=40000,proposal='bootstrap']", 0.07),
+            ],
+            ("particle_filter[n=20000]", 0.08),
+        ),
+        # the truth-told filter wins wherever it was scored; a diverged limit is none
+        (
+            [("particle_filter", 0.10), ("particle_filter+truth", 0.12)],
+            ("particle_filter+truth", 0.12),
+        ),
+        (
+            [("particle_filter", 0.10), ("particle_filter[n=20000]", math.inf)],
+            ("particle_filter", 0.10),
+        ),
+        ([("ukf", 0.10), ("particle_filter+logged", 0.09)], None),
+    ],
+)
+def test_limit_rows_pick_the_most_particles_or_the_truth(rows, expected):
+    summary = pd.DataFrame(
+        [
+            {"estimator": e, "system": "vdp", "regime": "sinusoid", "status": "ok", "rmse_mean": r}
+            for e, r in rows
+        ]
+    )
+    limits = comparisons.limit_rows(summary)
+    if expected is None:
+        assert limits.empty
+    else:
+        assert tuple(limits.loc[("vdp", "sinusoid")]) == expected
 
 
 def test_learned_versus_filters_pits_the_best_learned_row_against_the_best_filter():

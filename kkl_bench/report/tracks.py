@@ -45,7 +45,9 @@ Diverged trajectories are left out of the ratio and counted beside it."""
 TRACK_LIMIT_TEXT = """Distance from the Bayes limit on this track: the particle filter's RMSE
 (`particle_filter+truth` where the tasks' noise or initial box differ from what
 the estimators were fitted with; on `hard`, `particle_filter` fitted for each
-task) and each row's RMSE divided by it (1.00: at the limit)."""
+task, with more particles where doubling 10000 moved the cell by more than 2 %,
+protocol section 6.1; the limit row names which) and each row's RMSE divided by
+it (1.00: at the limit)."""
 
 CONDITIONS_TEXT = (
     "By condition: the ratio to the estimator's own paper-track RMSE as above, its "
