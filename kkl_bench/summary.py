@@ -31,7 +31,7 @@ SYSTEM_TITLES = {
     "lorenz": "Lorenz",
     "fitzhugh_nagumo": "FitzHugh-Nagumo",
     "chua": "Chua",
-    **{f"lorenz96-n{n}": f"Lorenz-96 n={n}" for n in (5, 10, 20, 40)},
+    **{f"lorenz96-n{n}": f"Lorenz-96 n={n}" for n in (5, 10, 20, 40, 80, 160)},
 }
 """Table and figure titles of the built-in systems, in the order tables show them."""
 REGIME_TITLES = {"zero": "Zero", "constant": "Const", "sinusoid": "Sin", "square": "Sqr"}
