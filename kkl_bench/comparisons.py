@@ -133,18 +133,17 @@ def limit_rows(summary: pd.DataFrame) -> pd.DataFrame:
     ours = summary[(summary["status"] == "ok") & ~summary["estimator"].str.startswith(PAPER_PREFIX)]
     finite = ours[np.isfinite(ours["rmse_mean"])]
     least = particle_count(LIMIT)
-    rank = {row: particle_count(row) for row in set(finite["estimator"])}
-    rank = {
-        row: math.inf if row == TRUTH_LIMIT else count if count and count >= least else None
-        for row, count in rank.items()
-    }
-    candidates = finite[finite["estimator"].map(lambda row: rank[row] is not None)]
-    if candidates.empty:
-        return pd.DataFrame(
-            columns=["row", "rmse"], index=pd.MultiIndex.from_tuples([], names=["system", "regime"])
-        )
-    chosen = candidates.assign(rank=candidates["estimator"].map(rank)).sort_values("rank")
-    chosen = chosen.groupby(["system", "regime"]).last()
+
+    def rank(row: str) -> float:
+        """How well ``row`` stands for the limit: NaN if it cannot."""
+        if row == TRUTH_LIMIT:
+            return math.inf
+        count = particle_count(row)
+        return count if count is not None and count >= least else math.nan
+
+    ranks = {row: rank(row) for row in finite["estimator"].unique()}
+    ranked = finite.assign(rank=finite["estimator"].map(ranks)).dropna(subset=["rank"])
+    chosen = ranked.sort_values("rank").groupby(["system", "regime"]).last()
     return chosen.rename(columns={"estimator": "row", "rmse_mean": "rmse"})[["row", "rmse"]]
 
 
@@ -164,8 +163,8 @@ LIMIT_COLUMNS = {
 
 
 def limit_frame(summary: pd.DataFrame) -> pd.DataFrame:
-    """Per cell: the particle filter's RMSE (the posterior mean under the exact model, the
-    least any estimator can expect; :func:`limit_rows` names the row) and the EKF's, the UKF's, the
+    """Per cell: the limit row (:func:`limit_rows`) and its RMSE, the posterior mean under
+    the exact model and the least any estimator can expect, and the EKF's, the UKF's, the
     EnKF's and the best learned row's RMSE over it (:data:`LIMIT_COLUMNS`). Empty without
     particle-filter results."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
@@ -232,9 +231,11 @@ def best_against_best(
     rows = []
     for system in in_paper_order(ok["system"], SYSTEM_TITLES):
         for regime in task_order(ok):
-            cell = cells.get((system, regime), ok.iloc[:0])
-            sides = [cell[cell["estimator"].isin(names)] for names in (first, second)]
-            if any(side.empty for side in sides):
+            cell = cells.get((system, regime))
+            sides = (
+                [] if cell is None else [cell[cell["estimator"].isin(n)] for n in (first, second)]
+            )
+            if not sides or any(side.empty for side in sides):
                 continue
             a, b = (side.loc[side["rmse_mean"].idxmin()] for side in sides)
             result = compare(np.asarray(a["rmse_trajectories"]), np.asarray(b["rmse_trajectories"]))
