@@ -122,7 +122,7 @@ VERSUS_TEXT = (
     "the calibrated UKF (`ukf+logged`) against the learned `+logged` row with the lowest "
     "RMSE: the ratio of their RMSEs with its 90 % interval from the paired bootstrap of "
     "the marks; *lower* where the interval lies below (calibrated lower) or above "
-    "(learned lower) 1."
+    "(learned lower) 1, *undecided* otherwise."
 )
 AGAINST_FILTERS_TEXT = (
     "Can a learned row beat the Gaussian filters that are handed the exact model? Per "
