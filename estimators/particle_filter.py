@@ -64,6 +64,9 @@ _CHUNK_ELEMENTS = 2**24
 _PRIOR_INFLATION = 2.0
 """The initial proposal's prior covariance is the box's, times this (heavier than the box)."""
 
+LARGEST_STATE = 10
+"""The largest state dimension the filter is run for (protocol 6.1: Lorenz-96 with 10 states)."""
+
 
 def systematic_resample(weights: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Ancestor indices by systematic resampling, row by row.
@@ -330,6 +333,16 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
             raise ValueError(
                 f"particle_filter: resample_below={resample_below!r} must be in [0, 1]"
             )
+
+    def unsupported_reason(self, system, measurement):
+        if system.n_x > LARGEST_STATE:
+            return (
+                f"not affordable here, and no limit: {system.name} has {system.n_x} states, "
+                f"beyond the {LARGEST_STATE} the filter is run for (a trajectory-step costs "
+                "about 128 ms at 40 states, and the particles a particle filter needs grow "
+                "exponentially with the state dimension; protocol 6.1)"
+            )
+        return super().unsupported_reason(system, measurement)
 
     def fit_report(self):
         return {**super().fit_report(), "particles": self.n, "proposal": self.proposal}

@@ -198,7 +198,9 @@ def make_fit_context(
         seed,
         conditions,
         profile=spec.profile.name,
-        budget=spec.profile.budget_for(variants.base_name(estimator)),
+        budget=spec.profile.budget_for(
+            variants.base_name(estimator), variants.split_row(estimator)[0]
+        ),
         cache_dir=Path(spec.cache_dir),
         logged_data=logged_data,
         device=spec.device,

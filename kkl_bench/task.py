@@ -77,9 +77,14 @@ class Profile:
     """A smoke test of the pipeline: its numbers say nothing about the methods, and a
     board of it says so and compares nothing with the paper."""
 
-    def budget_for(self, estimator: str) -> dict[str, Any]:
-        """The default budget updated with the estimator's own table, if any."""
-        return {**self.budgets.get("default", {}), **self.budgets.get(estimator, {})}
+    def budget_for(self, *tables: str) -> dict[str, Any]:
+        """The default budget updated with each of ``tables`` that the profile has, in
+        turn: the estimator's, then a variant's (``"kalmannet"``, then
+        ``"kalmannet[gain_init='ekf']"``, its canonical name)."""
+        budget = dict(self.budgets.get("default", {}))
+        for table in tables:
+            budget.update(self.budgets.get(table, {}))
+        return budget
 
 
 class ProfileError(ValueError):

@@ -12,6 +12,7 @@ from kkl_bench.estimators.particle_filter import (
     systematic_resample,
 )
 
+from kkl_bench.measurement import MeasurementModel
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
 from kkl_bench.registry import regimes, systems
 from kkl_bench.testing import Conformance
@@ -218,3 +219,10 @@ def test_the_initial_proposal_is_the_posterior_for_a_linear_output():
     gain = 0.4 / (0.4 + 0.0025)
     assert one[:, :, 0].mean(axis=1) == pytest.approx(mean[0] + gain * innovation[:, 0], abs=0.01)
     assert one[:, :, 0].var(axis=1) == pytest.approx([0.4 * (1 - gain)] * 2, rel=0.2)
+
+
+def test_lorenz96_beyond_ten_states_is_unsupported_with_the_reason():
+    pf = ParticleFilter()
+    assert pf.unsupported_reason(systems.get("lorenz96-n10")(), MeasurementModel()) is None
+    reason = pf.unsupported_reason(systems.get("lorenz96-n20")(), MeasurementModel())
+    assert "20 states" in reason and "protocol 6.1" in reason

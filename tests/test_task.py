@@ -8,6 +8,7 @@ import pytest
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.streams import TestStreamAccessError, sealed_test_streams
 from kkl_bench.registry import systems
+from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.task import ProfileError, Task, get_profile, load_profiles, make_test_set
 
 
@@ -110,3 +111,23 @@ def test_budget_merges_default_and_estimator_tables():
     )["p"]
     assert profile.budget_for("mine") == {"a": 1, "b": 3}
     assert profile.budget_for("other") == {"a": 1, "b": 2}
+
+
+def test_a_variant_table_overrides_its_estimators():
+    profile = load_profiles(
+        "[p]\nn_test = 1\n[p.budget.default]\na = 1\n[p.budget.mine]\nb = 3\n"
+        "[p.budget.\"mine[k='v']\"]\nb = {default = 3, big = 6}"
+    )["p"]
+    assert profile.budget_for("mine", "mine[k='v']") == {"a": 1, "b": {"default": 3, "big": 6}}
+    assert profile.budget_for("mine", "mine") == {"a": 1, "b": 3}
+
+
+def test_a_fit_context_reads_its_variants_table():
+    profile = load_profiles(
+        "[p]\nn_test = 1\n[p.budget.kalmannet]\nrnn_steps = 5\n"
+        "[p.budget.\"kalmannet[gain_init='ekf']\"]\nrnn_steps = 7"
+    )["p"]
+    spec = RunSpec(("kalmannet",), ("vdp",), None, profile)
+    variant = make_fit_context(spec, "kalmannet[gain_init='ekf']+logged", "vdp", 0)
+    assert variant.budget["rnn_steps"] == 7
+    assert make_fit_context(spec, "kalmannet", "vdp", 0).budget["rnn_steps"] == 5
