@@ -1,6 +1,6 @@
 """The scaling study: how each estimator's cost and error grow with the state dimension.
 
-On Lorenz-96 with ``n = 5, 10, 20, 40`` states (the ``more-systems`` track),
+On Lorenz-96 with ``n = 5, 10, ..., 160`` states (:data:`SIZES`; the ``more-systems`` track),
 per estimator:
 
 * the RMSE, from the track's cells in the results store (means over the four
