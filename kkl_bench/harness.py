@@ -312,7 +312,8 @@ def run(
 
     ``status`` is ``"cached"`` (already on disk, skipped), ``"ok"``,
     ``"diverged"`` (scored, some trajectory diverged), ``"unsupported"`` (the estimator
-    cannot handle the task's measurement model) or ``"error"``. Jobs
+    cannot be fitted for the task: :meth:`~kkl_bench.estimator.Estimator.unsupported_reason`)
+    or ``"error"``. Jobs
     (estimator x system) run through :func:`kkl_bench.executors.execute`
     with ``jobs``, ``executor`` and ``scheduler``. If a worker dies, every
     finished cell is kept, the others are recorded as errors, and the run

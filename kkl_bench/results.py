@@ -45,8 +45,8 @@ class CellResult:
     """Everything recorded about one scored cell.
 
     ``status`` is ``"ok"`` (scored; some trajectories may have diverged),
-    ``"unsupported"`` (the estimator cannot handle the task's measurement model;
-    ``error`` gives its reason) or ``"error"`` (the estimator raised or broke the
+    ``"unsupported"`` (the estimator cannot be fitted for the task: its measurement
+    model, a system it cannot express or cannot afford; ``error`` gives its reason) or ``"error"`` (the estimator raised or broke the
     interface; ``error`` says how). The metric fields are empty but for ``"ok"``.
     """
 

@@ -196,13 +196,17 @@ def _status(cells: pd.DataFrame, scored: pd.DataFrame) -> str:
     return "error"
 
 
-def unsupported_reasons(summary_cells: pd.DataFrame) -> dict[str, str]:
-    """Row -> the reason its unsupported cells give (the first, of ``summary_cells``: the
-    cells of one track as :func:`~kkl_bench.results.load_results` reads them)."""
+def unsupported_reasons(summary_cells: pd.DataFrame) -> list[tuple[str, list[str], str]]:
+    """``(row, systems, reason)`` for every distinct reason a row's unsupported cells give
+    (``summary_cells``: the cells of one track as :func:`~kkl_bench.results.load_results`
+    reads them), ``systems`` those where it is given, in the paper's order; rows in order."""
     unsupported = summary_cells[summary_cells["status"] == "unsupported"]
-    return {
-        name: cells["error"].iloc[0] for name, cells in unsupported.groupby("estimator", sort=False)
-    }
+    reasons = [
+        (row, in_paper_order(cells["system"], SYSTEM_TITLES), reason)
+        for (row, reason), cells in unsupported.groupby(["estimator", "error"])
+    ]
+    order = {system: position for position, system in enumerate(SYSTEM_TITLES)}
+    return sorted(reasons, key=lambda entry: (entry[0], order.get(entry[1][0], len(order))))
 
 
 def _marks(summary: pd.DataFrame, margin: float) -> pd.Series:

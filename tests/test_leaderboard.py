@@ -12,7 +12,7 @@ from kkl_bench.comparisons import limit_frame
 from kkl_bench.leaderboard import render, track_summary_table
 from kkl_bench.report.markdown import table
 from kkl_bench.significance import mark_column, ratio_lower_bound
-from kkl_bench.summary import paper_results, summary_table, track_summary
+from kkl_bench.summary import paper_results, summary_table, track_summary, unsupported_reasons
 
 
 def results_frame(entries=(("good", [0.1, 0.3]), ("bad", [1.0, 3.0]), ("broken", [0.1, math.inf]))):
@@ -373,3 +373,22 @@ def comparison_table(summary, a, b):
 
 def render_track_summary(frame, column="track"):
     return table(track_summary_table(frame, column))
+
+
+def test_unsupported_reasons_name_each_reason_once_with_its_systems():
+    cells = pd.DataFrame(
+        [
+            ("pf", "lorenz96-n160", "too big: 160"),
+            ("pf", "lorenz96-n20", "too big: 20"),
+            ("pf", "lorenz96-n20", "too big: 20"),  # another regime
+            ("ring", "chua", "no ring"),
+            ("ring", "fitzhugh_nagumo", "no ring"),
+            ("ring", "lorenz96-n5", None),
+        ],
+        columns=["estimator", "system", "error"],
+    ).assign(status=lambda frame: np.where(frame["error"].isna(), "ok", "unsupported"))
+    assert unsupported_reasons(cells) == [
+        ("pf", ["lorenz96-n20"], "too big: 20"),
+        ("pf", ["lorenz96-n160"], "too big: 160"),
+        ("ring", ["fitzhugh_nagumo", "chua"], "no ring"),
+    ]

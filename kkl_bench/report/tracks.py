@@ -228,9 +228,12 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
     if reasons:
         blocks.append(
             Text(
-                "`unsupported`: the estimator cannot handle the task's measurement model "
-                "(no number is scored):\n\n"
-                + "\n".join(f"- `{row}`: {reason}" for row, reason in reasons.items())
+                "`unsupported`: the estimator cannot be fitted for the task, for the reason "
+                "it gives (no number is scored):\n\n"
+                + "\n".join(
+                    f"- `{row}` on {', '.join(SYSTEM_TITLES.get(s, s) for s in systems)}: {reason}"
+                    for row, systems, reason in reasons
+                )
             )
         )
     calibrated = calibration_table(board.tables.cells[name], name)
