@@ -66,7 +66,7 @@ def add_parser(commands) -> None:
     scaling = commands.add_parser(
         "scaling",
         help="the Lorenz-96 scaling study: fit time, online cost and RMSE against n",
-        description="From the more-systems cells of Lorenz-96 (n = 5, 10, 20, 40) and the "
+        description="From the more-systems cells of Lorenz-96 (n = 5 to 160) and the "
         "models their run cached, time every fitted estimator's estimate side by side "
         "(batch 20 and 1, one thread) and write scaling.md, scaling.csv and "
         "figures/scaling.png|svg with the fitted exponent of each cost. Run "
