@@ -70,10 +70,12 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
     """Per (estimator, n): status, RMSE and fit time, means over the track's regimes.
 
     ``results``: the store's cells (:func:`~kkl_bench.results.load_results`).
-    Columns: estimator, n, status (``ok``, or the first error of a failed
-    cell), rmse, nrmse, fit_time_s (:func:`training_seconds`, else the fit's wall time
-    for an estimator that does not train; NaN for a model trained before training
-    times were recorded).
+    Columns: estimator, n, status (``ok``; ``unsupported`` when every cell not scored
+    is, the estimator refusing the system; else ``error``), reason (what the first cell
+    not scored says: the unsupported reason, or the error's last line), rmse, nrmse,
+    fit_time_s (:func:`training_seconds`, else the fit's wall time for an estimator
+    that does not train; NaN for a model trained before training times were recorded)
+    and converged (:func:`kkl_bench.convergence.worst` of its cells).
     """
     wanted = {system_name(n): n for n in sizes}
     track = results[(results.get("track") == TRACK) & results["system"].isin(wanted)]
@@ -94,7 +96,8 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
             {
                 "estimator": estimator,
                 "n": wanted[system],
-                "status": "ok" if failed.empty else _first_line(failed["error"].iloc[0]),
+                "status": _status(failed),
+                "reason": None if failed.empty else _last_line(failed["error"].iloc[0]),
                 "rmse": ok["rmse_mean"].mean() if failed.empty else math.nan,
                 "nrmse": ok["nrmse_mean"].mean() if failed.empty else math.nan,
                 "fit_time_s": _fit_seconds(
@@ -134,9 +137,18 @@ def _fit_seconds(cells: pd.DataFrame) -> float:
     return float(np.mean(seconds))
 
 
-def _first_line(error: object) -> str:
+def _status(failed: pd.DataFrame) -> str:
+    """``ok`` if no cell of an (estimator, n) failed, ``unsupported`` if the estimator
+    refused every one that did, else ``error``."""
+    if failed.empty:
+        return "ok"
+    return "unsupported" if (failed["status"] == "unsupported").all() else "error"
+
+
+def _last_line(error: object) -> str:
+    """An error's last non-empty line (a traceback's exception), or a one-line reason."""
     lines = [line for line in str(error).splitlines() if line.strip()]
-    return lines[-1][:120] if lines else "error"
+    return lines[-1] if lines else "error"
 
 
 def time_estimators(

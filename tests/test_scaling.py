@@ -45,7 +45,8 @@ def test_cell_summary_averages_regimes_and_reports_failures():
     summary = scaling.cell_summary(results).set_index(["estimator", "n"])
     assert summary.loc[("ekf", 10), "rmse"] == pytest.approx(0.3)
     assert summary.loc[("big", 5), "fit_time_s"] == 30.0
-    assert summary.loc[("big", 10), "status"] == "MemoryError: 40 GB"
+    assert summary.loc[("big", 10), "status"] == "error"
+    assert summary.loc[("big", 10), "reason"] == "MemoryError: 40 GB"
     assert math.isnan(summary.loc[("big", 10), "rmse"])
     assert summary.loc[("ekf", 5), "converged"] == ""  # nothing trained
     with pytest.raises(ValueError, match="no more-systems cells of lorenz96-n5"):
@@ -87,6 +88,7 @@ def frame():
                     estimator=name,
                     n=size,
                     status="ok",
+                    reason=None,
                     rmse=0.1,
                     nrmse=0.01,
                     fit_time_s=fit[i],
@@ -194,9 +196,13 @@ def test_a_study_written_before_timing_runs_were_recorded_reads_as_run_one(tmp_p
 
 def test_report_states_exponents_crossovers_and_failures():
     study = frame()
-    study.loc[3, ["status", "rmse"]] = ["MemoryError: 40 GB", math.nan]
+    study.loc[3, ["status", "reason", "rmse"]] = ["error", "MemoryError: 40 GB", math.nan]
     text = render_scaling(study, "standard")
     assert "| ekf         | 40  | failed: MemoryError: 40 GB |" in text
+    study.loc[7, ["status", "reason", "rmse"]] = ["unsupported", "too big here", math.nan]
+    text = render_scaling(study, "standard")
+    assert "| kkl         | 40  | unsupported " in text
+    assert "- `kkl` at n = 40: too big here" in text
     assert "| Converged " in text and "| yes " in text
     assert "| kkl         | 3.00       | 2.00               | 0.50              |" in text
     assert "| ekf         | -          | 0.00               | 1.00              |" in text

@@ -37,7 +37,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 [
                     estimator,
                     row.n,
-                    f"{row.rmse:.3g}" if ok else f"failed: {row.status}",
+                    _rmse(row),
                     _cost(row.fit_time_s) if ok else "-",
                     row.converged if ok else "-",
                     _cost(row.us_per_step_batch20),
@@ -97,6 +97,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                     "µs/step, batch 1",
                 ],
             ),
+            *_unsupported(frame),
             Text("Fitted exponents p of cost ~ n^p (least squares on log-log):"),
             _table(
                 exponent_table, ["Estimator", "fit time", "online, batch 20", "online, batch 1"]
@@ -145,6 +146,24 @@ def _later_runs(frame: pd.DataFrame) -> str:
             f"sizes ({REFERENCE.upper()} in run {run}: {costs})."
         )
     return "".join(sentences)
+
+
+def _rmse(row) -> str:
+    """A size's RMSE cell: the RMSE, ``unsupported`` (reasons under the table) or the
+    failure's last line."""
+    if row.status == "ok":
+        return f"{row.rmse:.3g}"
+    return "unsupported" if row.status == "unsupported" else f"failed: {row.reason[:120]}"
+
+
+def _unsupported(frame: pd.DataFrame) -> list[Text]:
+    """Each reason an estimator gave for refusing sizes, with the sizes."""
+    refused = frame[frame["status"] == "unsupported"]
+    lines = [
+        f"- `{estimator}` at n = {', '.join(map(str, sorted(rows_of['n'])))}: {reason}"
+        for (estimator, reason), rows_of in refused.groupby(["estimator", "reason"])
+    ]
+    return [Text("Unsupported (no fit, no number):\n\n" + "\n".join(lines))] if lines else []
 
 
 def _cost(value: float) -> str:
