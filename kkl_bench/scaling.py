@@ -60,6 +60,8 @@ COSTS = {
     "us_per_step_batch20": "µs / trajectory-step, batch 20",
     "us_per_step_batch1": "µs / trajectory-step, batch 1",
 }
+GROWTHS = {"rmse": "RMSE", **COSTS}
+"""Everything whose growth with n gets an exponent: the error and the costs."""
 
 
 def system_name(n: int) -> str:
@@ -261,13 +263,13 @@ build their model in microseconds); its fit time has no exponent."""
 
 
 def exponents(frame: pd.DataFrame) -> pd.DataFrame:
-    """Per estimator, the fitted exponent ``p`` of ``cost ~ n^p`` for each cost in
-    :data:`COSTS` (NaN with fewer than two finite, positive points, and for the fit
-    time of an estimator that does not train, see :data:`TRAINS`)."""
+    """Per estimator, the fitted exponent ``p`` of ``value ~ n^p`` for the RMSE and each
+    cost (:data:`GROWTHS`; NaN with fewer than two finite, positive points, and for the
+    fit time of an estimator that does not train, see :data:`TRAINS`)."""
     rows = []
     for estimator, rows_of in frame.groupby("estimator"):
         row = {"estimator": estimator}
-        for column in COSTS:
+        for column in GROWTHS:
             points = rows_of[np.isfinite(rows_of[column]) & (rows_of[column] > 0)]
             trains = column != "fit_time_s" or (points[column] >= TRAINS).any()
             row[column] = (

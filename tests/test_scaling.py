@@ -178,7 +178,7 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
         "n = 10: 600 and 30 µs/step at batch 20 and 1 (run 1: 200 and 10))." in text
     )
     assert scaling.untimed(summary, merged.reset_index()) == []
-    assert "| kkl         | 0.00       | 1.00 †             | 1.00 †            |" in text
+    assert "| kkl         | 0.58   | 0.00       | 1.00 †             | 1.00 †            |" in text
     assert "† fitted to online costs from more than one timing run" in text
 
 
@@ -204,8 +204,8 @@ def test_report_states_exponents_crossovers_and_failures():
     assert "| kkl         | 40  | unsupported " in text
     assert "- `kkl` at n = 40: too big here" in text
     assert "| Converged " in text and "| yes " in text
-    assert "| kkl         | 3.00       | 2.00               | 0.50              |" in text
-    assert "| ekf         | -          | 0.00               | 1.00              |" in text
+    assert "| kkl         | 0.00   | 3.00       | 2.00               | 0.50              |" in text
+    assert "| ekf         | 0.00   | -          | 0.00               | 1.00              |" in text
     assert "| kkl         | every n    | every n   |" in text
 
 

@@ -14,6 +14,7 @@ from kkl_bench.report.model import Figure, Section, Table, Text
 from kkl_bench.scaling import (
     BATCHES,
     COSTS,
+    GROWTHS,
     ONLINE,
     REFERENCE,
     REFERENCE_ONLINE,
@@ -53,7 +54,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
             *(
                 _exponent(getattr(row, column))
                 + (" †" if row.estimator in mixed and column in ONLINE else "")
-                for column in COSTS
+                for column in GROWTHS
             ),
         ]
         for row in fitted.itertuples()
@@ -98,9 +99,10 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 ],
             ),
             *_unsupported(frame),
-            Text("Fitted exponents p of cost ~ n^p (least squares on log-log):"),
+            Text("Fitted exponents p of value ~ n^p (least squares on log-log):"),
             _table(
-                exponent_table, ["Estimator", "fit time", "online, batch 20", "online, batch 1"]
+                exponent_table,
+                ["Estimator", "RMSE", "fit time", "online, batch 20", "online, batch 1"],
             ),
             *([Text(note.strip())] if note else []),
             Text(
@@ -171,7 +173,7 @@ def _cost(value: float) -> str:
 
 
 def _exponent(value: float) -> str:
-    return f"{value:.2f}" if math.isfinite(value) else "-"
+    return f"{round(value, 2) + 0.0:.2f}" if math.isfinite(value) else "-"  # no "-0.00"
 
 
 def _crossing(cheaper: list[int], sizes: Sequence[int]) -> str:
