@@ -15,7 +15,7 @@ per estimator:
   rows an earlier one lacks (a new estimator, a size trained since), timing the
   reference EKF at the same sizes beside them: every row carries the EKF's cost
   *of its own run*, and every comparison with the EKF uses it;
-* the exponent ``p`` of each cost curve, ``cost ~ n^p``, the least-squares
+* the exponent ``p`` of the RMSE and of each cost curve, ``value ~ n^p``, the least-squares
   slope of ``log cost`` against ``log n``.
 
 Everything the study reports is in the frame :func:`scaling_frame` returns;
