@@ -262,36 +262,30 @@ def save(figure, path_without_suffix: Path) -> list[Path]:
     return paths
 
 
-def scaling_figure(frame: pd.DataFrame, costs: Mapping[str, str], fitted: pd.DataFrame):
-    """Log-log panels of each cost in ``costs`` (column -> title) against the state dimension.
-
-    ``frame``: the scaling study (:func:`kkl_bench.scaling.scaling_frame`), ``fitted``:
-    its exponents per estimator (:func:`kkl_bench.scaling.exponents`), shown in the legends.
-    """
+def scaling_figure(frame: pd.DataFrame, costs: Mapping[str, str]):
+    """Log-log panels of each column of ``costs`` (column -> title: the RMSE and the costs)
+    against the state dimension, one legend for all (``frame``: the scaling study,
+    :func:`kkl_bench.scaling.scaling_frame`; the fitted exponents are in its tables)."""
     plt = pyplot()
     names = sorted(set(frame["estimator"]))
     colors = _colors(names)
-    figure, axes = plt.subplots(1, len(costs), figsize=(13, 6.2), constrained_layout=True)
-    fitted = fitted.set_index("estimator")
+    figure, axes = plt.subplots(
+        1, len(costs), figsize=(4.4 * len(costs), 6.2), layout="constrained"
+    )
+    handles = {}
     for axis, (column, label) in zip(axes, costs.items(), strict=True):
         for name in names:
             rows_of = frame[(frame["estimator"] == name) & np.isfinite(frame[column])]
-            if rows_of.empty:
-                continue
-            p = fitted.loc[name, column]
-            axis.loglog(
-                rows_of["n"],
-                rows_of[column],
-                marker="o",
-                color=colors[name],
-                label=f"{name} (p = {p:.2f})" if math.isfinite(p) else name,
-            )
+            if not rows_of.empty:
+                (handles[name],) = axis.loglog(
+                    rows_of["n"], rows_of[column], marker="o", color=colors[name]
+                )
         axis.set_xlabel("state dimension n")
         axis.set_title(label)
         axis.set_xticks(sorted(set(frame["n"])), [str(n) for n in sorted(set(frame["n"]))])
         axis.xaxis.set_minor_formatter(plt.NullFormatter())  # only the measured sizes
         axis.grid(alpha=0.3, which="both")
-        # below the panel: inside, a dozen entries hide the curves
-        axis.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
-    figure.suptitle("Lorenz-96: cost against the state dimension")
+    ordered = [name for name in names if name in handles]
+    figure.legend([handles[name] for name in ordered], ordered, loc="outside lower center", ncol=5)
+    figure.suptitle("Lorenz-96: error and cost against the state dimension")
     return figure

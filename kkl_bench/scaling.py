@@ -55,13 +55,13 @@ TIMING_COLUMNS = ("timing_run", "timing_commit", *ONLINE, *REFERENCE_ONLINE)
 """What a study stores of its timings, per (estimator, n): the timing run that measured the
 row (1, 2, ...), the code's git commit in that run, its online costs and the reference's
 costs in that run."""
-COSTS = {
+GROWTHS = {
+    "rmse": "RMSE (mean over regimes)",
     "fit_time_s": "fit time (s)",
     "us_per_step_batch20": "µs / trajectory-step, batch 20",
     "us_per_step_batch1": "µs / trajectory-step, batch 1",
 }
-GROWTHS = {"rmse": "RMSE", **COSTS}
-"""Everything whose growth with n gets an exponent: the error and the costs."""
+"""Everything whose growth with n gets an exponent and a panel: the error and the costs."""
 
 
 def system_name(n: int) -> str:

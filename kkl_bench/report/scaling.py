@@ -13,7 +13,6 @@ from kkl_bench.report import markdown
 from kkl_bench.report.model import Figure, Section, Table, Text
 from kkl_bench.scaling import (
     BATCHES,
-    COSTS,
     GROWTHS,
     ONLINE,
     REFERENCE,
@@ -161,9 +160,13 @@ def _rmse(row) -> str:
 def _unsupported(frame: pd.DataFrame) -> list[Text]:
     """Each reason an estimator gave for refusing sizes, with the sizes."""
     refused = frame[frame["status"] == "unsupported"]
-    lines = [
-        f"- `{estimator}` at n = {', '.join(map(str, sorted(rows_of['n'])))}: {reason}"
+    groups = sorted(
+        (estimator, sorted(rows_of["n"]), reason)
         for (estimator, reason), rows_of in refused.groupby(["estimator", "reason"])
+    )
+    lines = [
+        f"- `{estimator}` at n = {', '.join(map(str, sizes))}: {reason}"
+        for estimator, sizes, reason in groups
     ]
     return [Text("Unsupported (no fit, no number):\n\n" + "\n".join(lines))] if lines else []
 
@@ -198,6 +201,6 @@ def write_study(cells: pd.DataFrame, timings: pd.DataFrame, profile: str, out: P
     study.write_text(text, encoding="utf-8")
     table = out / "scaling.csv"
     frame.to_csv(table, index=False, float_format="%.6g")
-    figure = figures.scaling_figure(frame, COSTS, exponents(frame))
+    figure = figures.scaling_figure(frame, GROWTHS)
     figures.save(figure, out / "figures" / "scaling")
     return [study, table, out / "figures" / "scaling.png"]
