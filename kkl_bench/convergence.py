@@ -63,6 +63,17 @@ def flags(report: Any) -> list[bool | None]:
     return found
 
 
+def curves(report: Any, path: tuple[str, ...] = ()) -> list[tuple[str, list]]:
+    """Every validation curve in a fit ``report`` (nested dicts), in order, each with the
+    path of keys that leads to it (``"training_log"``, ``"phase1_log.decoder"``)."""
+    if not isinstance(report, dict):
+        return []
+    found = [(".".join(path), report["validation_curve"])] if "validation_curve" in report else []
+    for key, value in report.items():
+        found += curves(value, (*path, key))
+    return found
+
+
 def trained(report: Any) -> bool:
     """Whether the fit behind ``report`` took optimizer steps (its ``spent`` says so)."""
     spent = report.get("spent") if isinstance(report, dict) else None

@@ -246,6 +246,43 @@ def cost_accuracy_figure(summary: pd.DataFrame):
     return figure
 
 
+def curves_figure(curves: pd.DataFrame):
+    """Validation curves against the share of the budget spent, one panel per estimator,
+    one line per size (colour) and training (line style); ``curves``: the scaling
+    study's :func:`kkl_bench.scaling.curve_frame`."""
+    plt = pyplot()
+    names = sorted(set(curves["estimator"]))
+    sizes = sorted(set(curves["n"]))
+    shades = plt.get_cmap("viridis")
+    colors = {n: shades(i / max(1, len(sizes) - 1)) for i, n in enumerate(sizes)}
+    styles = ("-", "--", ":", "-.")
+    columns = min(3, len(names))
+    rows = math.ceil(len(names) / columns)
+    figure, axes = plt.subplots(
+        rows, columns, figsize=(4.6 * columns, 3.4 * rows), squeeze=False, layout="constrained"
+    )
+    for axis, name in zip(axes.flat, names, strict=False):
+        of = curves[curves["estimator"] == name]
+        trainings = list(dict.fromkeys(of["training"]))
+        for (n, training), curve in of.groupby(["n", "training"], sort=True):
+            axis.semilogy(
+                curve["step"] / curve["step"].max(),
+                curve["error"],
+                color=colors[n],
+                linestyle=styles[trainings.index(training) % len(styles)],
+                marker=".",
+                label=f"n = {n}" + (f", {training}" if len(trainings) > 1 else ""),
+            )
+        axis.set_title(name, fontsize=9)
+        axis.set_xlabel("share of the training's steps")
+        axis.grid(alpha=0.3, which="both")
+        axis.legend(fontsize=6)
+    for axis in axes.flat[len(names) :]:
+        axis.set_visible(False)
+    figure.suptitle("Lorenz-96: validation error along each training (protocol 6.5)")
+    return figure
+
+
 def save(figure, path_without_suffix: Path) -> list[Path]:
     """Write ``figure`` as PNG and SVG (reproducible bytes); returns both paths."""
     plt = pyplot()

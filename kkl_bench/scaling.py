@@ -113,6 +113,32 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
     return pd.DataFrame(rows)
 
 
+def curve_frame(results: pd.DataFrame, seed: int = 0, sizes: Sequence[int] = SIZES) -> pd.DataFrame:
+    """The validation curves (protocol 6.5) of every fit of seed ``seed`` on the track's
+    Lorenz-96 sizes, one row per point: estimator, n, training (where in the fit report
+    the curve is), step, error. A fit is read from one of its cells (every regime's
+    cell keeps the same report); a model trained at another size and applied at this one
+    (its report's ``trained_on``) gives its curve once, at the size it trained at."""
+    wanted = {system_name(n): n for n in sizes}
+    fits = results[
+        (results.get("track") == TRACK)
+        & results["system"].isin(wanted)
+        & (results["seed"] == seed)
+        & (results["status"] == "ok")
+    ].drop_duplicates(["estimator", "system"])
+    rows = []
+    for fit in fits.itertuples():
+        report = fit.fit_report if isinstance(fit.fit_report, dict) else {}
+        trained_at = wanted.get(report.get("trained_on"), wanted[fit.system])
+        rows += [
+            (fit.estimator, trained_at, training, step, error)
+            for training, curve in convergence.curves(report)
+            for step, error in curve
+        ]
+    frame = pd.DataFrame(rows, columns=["estimator", "n", "training", "step", "error"])
+    return frame.drop_duplicates(["estimator", "n", "training", "step"], ignore_index=True)
+
+
 def training_seconds(report: object) -> float | None:
     """Seconds of every training a fit used, from its fit report's ``spent`` (each phase's
     wall time, stored with the trained model, so a phase loaded from the cache counts as
@@ -254,6 +280,8 @@ def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
     """One row per (estimator, n): :func:`cell_summary`'s columns and the timings
     (:func:`timing_frame`, :func:`add_timings`)."""
     frame = cells.merge(timings, on=["estimator", "n"], how="left")
+    costs = [*ONLINE, *REFERENCE_ONLINE]
+    frame[costs] = frame[costs].astype(float)  # NaN where untimed, also when nothing is
     return frame.sort_values(["estimator", "n"]).reset_index(drop=True)
 
 

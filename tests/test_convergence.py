@@ -41,3 +41,16 @@ def test_the_verdict_reads_the_curve_not_the_stored_flag():
         training_log={"validation_curve": [[0, 0.3], [50, 37.2], [100, 37.2]], "converged": True}
     )
     assert convergence.flags(stuck) == [False]
+
+
+def test_curves_are_found_with_the_path_that_leads_to_them():
+    report = {
+        "phase1_log": {"decoder": {"validation_curve": [[0, 2.0], [10, 1.0]]}},
+        "training_log": {"validation_curve": [[0, 3.0], [5, 2.5]], "final_loss": 0.1},
+        "spent": {"phase1": {"steps": 10}},
+    }
+    assert convergence.curves(report) == [
+        ("phase1_log.decoder", [[0, 2.0], [10, 1.0]]),
+        ("training_log", [[0, 3.0], [5, 2.5]]),
+    ]
+    assert convergence.curves({"spent": {}}) == []

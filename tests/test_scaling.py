@@ -211,3 +211,31 @@ def test_report_states_exponents_crossovers_and_failures():
 
 def render_scaling(frame, profile):
     return markdown.section(study_section(frame, profile))
+
+
+def test_curve_frame_gives_each_training_once_at_the_size_it_trained_at(tmp_path):
+    def report(trained_on=None):
+        curve = {"validation_curve": [[0, 1.0], [50, 0.2], [100, 0.1]]}
+        return {"training_log": curve, **({"trained_on": trained_on} if trained_on else {})}
+
+    results = pd.DataFrame(
+        cells("ring", 5, 0.1, 9.0, report=report())
+        + cells("ring", 10, 0.1, 9.0, report=report())
+        + cells("moved", 5, 0.1, 9.0, report=report("lorenz96-n10"))
+        + cells("moved", 10, 0.1, 9.0, report=report("lorenz96-n10"))
+        + cells("ekf", 5, 0.1, 0.0)
+    )
+    curves = scaling.curve_frame(results)
+    assert sorted(set(zip(curves["estimator"], curves["n"], strict=True))) == [
+        ("moved", 10),
+        ("ring", 5),
+        ("ring", 10),
+    ]
+    assert curves[curves["estimator"] == "moved"]["error"].tolist() == [1.0, 0.2, 0.1]
+    written = write_study(
+        scaling.cell_summary(results), scaling.stored_timings(None), "standard", tmp_path, curves
+    )
+    assert (tmp_path / "figures" / "scaling-curves.png") in written
+    assert (
+        "![validation curves](figures/scaling-curves.png)" in (tmp_path / "scaling.md").read_text()
+    )

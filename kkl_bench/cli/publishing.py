@@ -184,7 +184,8 @@ def scaling_study(args: argparse.Namespace) -> int:
         stored = scaling.add_timings(stored, timings)
     else:
         print(f"every fitted estimator already has its online cost in {study}")
-    written = write_study(cells, stored, profile, args.out)
+    curves = scaling.curve_frame(results, args.seed)
+    written = write_study(cells, stored, profile, args.out, curves)
     print(f"wrote {', '.join(map(str, written))}")
     return exit_status(args, damaged)
 

@@ -185,22 +185,54 @@ def _crossing(cheaper: list[int], sizes: Sequence[int]) -> str:
     return "every n" if cheaper == sorted(sizes) else "n = " + ", ".join(map(str, cheaper))
 
 
-def write_study(cells: pd.DataFrame, timings: pd.DataFrame, profile: str, out: Path) -> list[Path]:
-    """Write ``scaling.md``, ``scaling.csv`` and ``figures/scaling.{png,svg}`` into ``out``."""
+def curves_section(curves: pd.DataFrame) -> Section:
+    """The validation curves behind the Converged column."""
+    return Section(
+        "",
+        [
+            Text(
+                "Validation curves of the fits above (protocol 6.5; the seed timed), "
+                "against the share of each training's steps: a row converged where its "
+                "curves had flattened before the budget ran out. Fits trained before the "
+                "curves were recorded have none."
+            ),
+            Figure("scaling-curves", "validation curves"),
+        ],
+    )
+
+
+def write_study(
+    cells: pd.DataFrame,
+    timings: pd.DataFrame,
+    profile: str,
+    out: Path,
+    curves: pd.DataFrame | None = None,
+) -> list[Path]:
+    """Write ``scaling.md``, ``scaling.csv`` and ``figures/scaling.{png,svg}`` into ``out``,
+    and ``figures/scaling-curves.{png,svg}`` if ``curves``
+    (:func:`~kkl_bench.scaling.curve_frame`) holds any."""
     frame = scaling_frame(cells, timings)
     out.mkdir(parents=True, exist_ok=True)
     written_by = Section(
         "", [Text("Written by `kkl-bench scaling` (see `docs/protocol.md` section 8).")]
     )
+    has_curves = curves is not None and not curves.empty
     sizes = sorted(set(frame["n"]))
     text = markdown.document(
         f"Scaling study: Lorenz-96 from {sizes[0]} to {sizes[-1]} states",
-        [written_by, study_section(frame, profile)],
+        [
+            written_by,
+            study_section(frame, profile),
+            *([curves_section(curves)] if has_curves else []),
+        ],
     )
     study = out / "scaling.md"
     study.write_text(text, encoding="utf-8")
     table = out / "scaling.csv"
     frame.to_csv(table, index=False, float_format="%.6g")
-    figure = figures.scaling_figure(frame, GROWTHS)
-    figures.save(figure, out / "figures" / "scaling")
-    return [study, table, out / "figures" / "scaling.png"]
+    figures.save(figures.scaling_figure(frame, GROWTHS), out / "figures" / "scaling")
+    written = [study, table, out / "figures" / "scaling.png"]
+    if has_curves:
+        figures.save(figures.curves_figure(curves), out / "figures" / "scaling-curves")
+        written.append(out / "figures" / "scaling-curves.png")
+    return written
