@@ -1,6 +1,7 @@
 """The command line: smoke runs, the leaderboard, and clear errors on bad input."""
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from kkl_bench.cli import main
@@ -262,3 +263,16 @@ def test_list_names_a_broken_plugin_once_with_its_import_error(monkeypatch, caps
     out = capsys.readouterr().out
     assert out.count("my_plugin") == 1 and out.count("No module named") == 1
     assert f"BROKEN estimator my_plugin (not usable): {reason}" in out
+
+
+def test_scaling_render_only_writes_the_study_without_timing(tmp_path, capsys):
+    results, out = str(tmp_path / "results"), tmp_path / "board"
+    sizes = ["--system", "lorenz96-n5", "lorenz96-n10", "--regime", "sinusoid"]
+    run = ["run", "--estimator", "ekf", "--track", "more-systems", *sizes, "--profile", "quick"]
+    assert main([*run, "--results", results]) == 0
+    assert main(["scaling", "--results", results, "--out", str(out), "--render-only"]) == 0
+    assert "| ekf         | 5   |" in (out / "scaling.md").read_text()
+    assert pd.read_csv(out / "scaling.csv")["us_per_step_batch20"].isna().all()  # none timed
+    with pytest.raises(SystemExit):  # argparse: not allowed together
+        main(["scaling", "--missing-only", "--render-only", "--results", results])
+    assert "not allowed with argument --missing-only" in capsys.readouterr().err

@@ -77,12 +77,19 @@ def add_parser(commands) -> None:
     scaling.add_argument(
         "--seed", type=seed, default=0, help="the training seed whose models are timed (default 0)"
     )
-    scaling.add_argument(
+    timing = scaling.add_mutually_exclusive_group()
+    timing.add_argument(
         "--missing-only",
         action="store_true",
         help="time only the fitted (estimator, n) that the study in --out has no online cost "
         "for, beside the EKF at the same sizes, and keep the other rows' costs (to add an "
         "estimator or a size without fitting the rest again)",
+    )
+    timing.add_argument(
+        "--render-only",
+        action="store_true",
+        help="time nothing: rewrite the study in --out from the results and its stored "
+        "online costs (rows never timed show '-'), e.g. after new cells or curves",
     )
     scaling.set_defaults(handler=scaling_study)
 
@@ -172,8 +179,8 @@ def scaling_study(args: argparse.Namespace) -> int:
         cache_dir=args.cache or default_cache_dir(),
     )
     study = args.out / "scaling.csv"
-    stored = scaling.stored_timings(study if args.missing_only else None)
-    wanted = scaling.untimed(cells, stored)
+    stored = scaling.stored_timings(study if args.missing_only or args.render_only else None)
+    wanted = [] if args.render_only else scaling.untimed(cells, stored)
     fitted = {
         (estimator, n): scaling.fit_from_cache(spec, estimator, n, args.seed)
         for estimator, n in tqdm(wanted, desc="loading fitted models", unit="model")
@@ -182,7 +189,7 @@ def scaling_study(args: argparse.Namespace) -> int:
         commit = provenance()["git_commit"]
         timings = scaling.timing_frame(scaling.time_estimators(spec, fitted), commit)
         stored = scaling.add_timings(stored, timings)
-    else:
+    elif not args.render_only:
         print(f"every fitted estimator already has its online cost in {study}")
     curves = scaling.curve_frame(results, args.seed)
     written = write_study(cells, stored, profile, args.out, curves)
