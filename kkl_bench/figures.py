@@ -299,18 +299,18 @@ def save(figure, path_without_suffix: Path) -> list[Path]:
     return paths
 
 
-def scaling_figure(frame: pd.DataFrame, costs: Mapping[str, str]):
-    """Log-log panels of each column of ``costs`` (column -> title: the RMSE and the costs)
+def scaling_figure(frame: pd.DataFrame, panels: Mapping[str, str]):
+    """Log-log panels of each column of ``panels`` (column -> title: the RMSE and the costs)
     against the state dimension, one legend for all (``frame``: the scaling study,
     :func:`kkl_bench.scaling.scaling_frame`; the fitted exponents are in its tables)."""
     plt = pyplot()
     names = sorted(set(frame["estimator"]))
     colors = _colors(names)
     figure, axes = plt.subplots(
-        1, len(costs), figsize=(4.4 * len(costs), 6.2), layout="constrained"
+        1, len(panels), figsize=(4.4 * len(panels), 6.2), layout="constrained"
     )
     handles = {}
-    for axis, (column, label) in zip(axes, costs.items(), strict=True):
+    for axis, (column, label) in zip(axes, panels.items(), strict=True):
         for name in names:
             rows_of = frame[(frame["estimator"] == name) & np.isfinite(frame[column])]
             if not rows_of.empty:

@@ -313,11 +313,10 @@ def run(
     ``status`` is ``"cached"`` (already on disk, skipped), ``"ok"``,
     ``"diverged"`` (scored, some trajectory diverged), ``"unsupported"`` (the estimator
     cannot be fitted for the task: :meth:`~kkl_bench.estimator.Estimator.unsupported_reason`)
-    or ``"error"``. Jobs
-    (estimator x system) run through :func:`kkl_bench.executors.execute`
-    with ``jobs``, ``executor`` and ``scheduler``. If a worker dies, every
-    finished cell is kept, the others are recorded as errors, and the run
-    returns.
+    or ``"error"``. Jobs (estimator x system) run through
+    :func:`kkl_bench.executors.execute` with ``jobs``, ``executor`` and ``scheduler``.
+    If a worker dies, every finished cell is kept, the others are recorded as errors,
+    and the run returns.
     """
     check_writable(spec.results_dir)
     summary = RunSummary()

@@ -46,8 +46,9 @@ class CellResult:
 
     ``status`` is ``"ok"`` (scored; some trajectories may have diverged),
     ``"unsupported"`` (the estimator cannot be fitted for the task: its measurement
-    model, a system it cannot express or cannot afford; ``error`` gives its reason) or ``"error"`` (the estimator raised or broke the
-    interface; ``error`` says how). The metric fields are empty but for ``"ok"``.
+    model, a system it cannot express or cannot afford; ``error`` gives its reason) or
+    ``"error"`` (the estimator raised or broke the interface; ``error`` says how). The
+    metric fields are empty but for ``"ok"``.
     """
 
     estimator: str

@@ -79,8 +79,7 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
     that does not train; NaN for a model trained before training times were recorded)
     and converged (:func:`kkl_bench.convergence.worst` of its cells).
     """
-    wanted = {system_name(n): n for n in sizes}
-    track = results[(results.get("track") == TRACK) & results["system"].isin(wanted)]
+    track, wanted = _lorenz96_cells(results, sizes)
     if track.empty:
         raise ValueError(
             f"the results hold no {TRACK} cells of {', '.join(wanted)}; run "
@@ -119,13 +118,9 @@ def curve_frame(results: pd.DataFrame, seed: int = 0, sizes: Sequence[int] = SIZ
     the curve is), step, error. A fit is read from one of its cells (every regime's
     cell keeps the same report); a model trained at another size and applied at this one
     (its report's ``trained_on``) gives its curve once, at the size it trained at."""
-    wanted = {system_name(n): n for n in sizes}
-    fits = results[
-        (results.get("track") == TRACK)
-        & results["system"].isin(wanted)
-        & (results["seed"] == seed)
-        & (results["status"] == "ok")
-    ].drop_duplicates(["estimator", "system"])
+    track, wanted = _lorenz96_cells(results, sizes)
+    fits = track[(track["seed"] == seed) & (track["status"] == "ok")]
+    fits = fits.drop_duplicates(["estimator", "system"])
     rows = []
     for fit in fits.itertuples():
         report = fit.fit_report if isinstance(fit.fit_report, dict) else {}
@@ -137,6 +132,14 @@ def curve_frame(results: pd.DataFrame, seed: int = 0, sizes: Sequence[int] = SIZ
         ]
     frame = pd.DataFrame(rows, columns=["estimator", "n", "training", "step", "error"])
     return frame.drop_duplicates(["estimator", "n", "training", "step"], ignore_index=True)
+
+
+def _lorenz96_cells(
+    results: pd.DataFrame, sizes: Sequence[int]
+) -> tuple[pd.DataFrame, dict[str, int]]:
+    """The track's cells of Lorenz-96 at ``sizes``, and each size's system name -> n."""
+    wanted = {system_name(n): n for n in sizes}
+    return results[(results.get("track") == TRACK) & results["system"].isin(wanted)], wanted
 
 
 def training_seconds(report: object) -> float | None:

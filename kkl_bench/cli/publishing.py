@@ -183,7 +183,9 @@ def scaling_study(args: argparse.Namespace) -> int:
     wanted = [] if args.render_only else scaling.untimed(cells, stored)
     fitted = {
         (estimator, n): scaling.fit_from_cache(spec, estimator, n, args.seed)
-        for estimator, n in tqdm(wanted, desc="loading fitted models", unit="model")
+        for estimator, n in tqdm(
+            wanted, desc="loading fitted models", unit="model", disable=not wanted
+        )
     }
     if fitted:
         commit = provenance()["git_commit"]
