@@ -13,53 +13,73 @@ import math
 from collections.abc import Iterable
 from typing import Any
 
-YES, NO, UNRECORDED, UNTRAINED = "yes", "no", "not recorded", ""
-"""What the board writes for a row: every training converged, one did not, a training
-without a curve (cached before curves were recorded), nothing trained (a filter)."""
-
+YES, NO, DIVERGED, UNRECORDED, UNTRAINED = "yes", "no", "diverged", "not recorded", ""
+"""What the board writes for a row: every training converged; one did not (its curve was
+still falling); one diverged (:func:`diverged`); a training without a curve (cached before
+curves were recorded); nothing trained (a filter)."""
 
 CONVERGENCE_TOLERANCE = 0.05
 """A training has converged when the second half of its steps lowered the validation
 error by less than this fraction of the best error of the first half (:func:`converged`)."""
 
-
 DIVERGED_RATIO = 2.0
-"""A training whose last validation error is above this many times its best did not
-converge (:func:`converged`)."""
+"""A training whose last validation error is above this many times its best diverged
+(:func:`diverged`)."""
+
+
+def diverged(curve: list[tuple[int, float]] | list[list[float]]) -> bool:
+    """Whether the training behind a validation ``curve`` (``(step, error)`` pairs) left
+    its best state for good: an error that is not finite, or a last error more than
+    :data:`DIVERGED_RATIO` times the best (a filter driven to its clip bounds ends flat,
+    but far above where it started). More steps do not mend such a training."""
+    errors = [error for _, error in curve]
+    if not all(math.isfinite(error) for error in errors):
+        return True
+    return bool(errors) and errors[-1] > DIVERGED_RATIO * min(errors)
 
 
 def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None:
     """Whether the training behind a validation ``curve`` (``(step, error)`` pairs in
-    step order) had converged: its last error is no more than :data:`CONVERGENCE_TOLERANCE`
-    below the best error of the first half of its steps. The second half, not the last
-    quarter: under the cosine schedule the last quarter gets 2.5 % of the learning rate's
-    integral and looks flat whether or not the budget ran out; the second half gets 18 %.
-    An error that rose a little again counts as converged (more steps would not lower
-    it); one that ended more than :data:`DIVERGED_RATIO` times its best, or not finite,
-    did not converge: the training left its best state (a filter driven to its clip
-    bounds ends flat, but far above where it started). None for a curve of fewer than
+    step order) had converged: it did not diverge (:func:`diverged`) and its last error
+    is no more than :data:`CONVERGENCE_TOLERANCE` below the best error of the first half
+    of its steps. The second half, not the last quarter: under the cosine schedule the
+    last quarter gets 2.5 % of the learning rate's integral and looks flat whether or not
+    the budget ran out; the second half gets 18 %. An error that rose a little again
+    counts as converged (more steps would not lower it). None for a curve of fewer than
     three points, which cannot say."""
     if len(curve) < 3:
         return None
-    last_step, last = curve[-1]
-    errors = [error for _, error in curve]
-    first_half = [error for step, error in curve if step <= 0.5 * last_step]
-    if not all(math.isfinite(error) for error in errors) or last > DIVERGED_RATIO * min(errors):
+    if diverged(curve):
         return False
+    last_step, last = curve[-1]
+    first_half = [error for step, error in curve if step <= 0.5 * last_step]
     return last >= (1.0 - CONVERGENCE_TOLERANCE) * min(first_half)
 
 
-def flags(report: Any) -> list[bool | None]:
-    """Whether each training in a fit ``report`` (nested dicts) converged, in order: its
-    ``validation_curve`` read by today's :func:`converged`, else its stored ``"converged"``."""
+def outcome(curve: list[tuple[int, float]] | list[list[float]]) -> str:
+    """The verdict on one training's validation ``curve``: :data:`YES`, :data:`NO`,
+    :data:`DIVERGED` or :data:`UNRECORDED` (too short to say)."""
+    if len(curve) < 3:
+        return UNRECORDED
+    if diverged(curve):
+        return DIVERGED
+    return YES if converged(curve) else NO
+
+
+def outcomes(report: Any) -> list[str]:
+    """The verdict on each training in a fit ``report`` (nested dicts), in order: its
+    ``validation_curve`` read by today's :func:`outcome`, else its stored ``"converged"``
+    (a stored False reads :data:`NO`: without the curve, divergence cannot be told)."""
     if not isinstance(report, dict):
         return []
     if "validation_curve" in report:
-        found = [converged(report["validation_curve"])]
+        found = [outcome(report["validation_curve"])]
+    elif "converged" in report:
+        found = [{True: YES, False: NO}.get(report["converged"], UNRECORDED)]
     else:
-        found = [report["converged"]] if "converged" in report else []
+        found = []
     for value in report.values():
-        found += flags(value)
+        found += outcomes(value)
     return found
 
 
@@ -81,24 +101,21 @@ def trained(report: Any) -> bool:
 
 
 def verdict(reports: Iterable[Any]) -> str:
-    """:data:`NO` if any training of the fits behind ``reports`` did not converge, else
-    :data:`UNRECORDED` if a fit that trained recorded no verdict (or a curve too short to
-    give one), :data:`YES` if every training converged, :data:`UNTRAINED` if none trained."""
+    """The worst (:func:`worst`) verdict on the trainings of the fits behind ``reports``;
+    :data:`UNRECORDED` for a fit that trained and recorded none, :data:`UNTRAINED` if
+    none trained."""
     reports = [report for report in reports if trained(report)]
     if not reports:
         return UNTRAINED
-    found = [flags(report) for report in reports]
-    if any(flag is False for flag_list in found for flag in flag_list):
-        return NO
-    if any(not flag_list or None in flag_list for flag_list in found):
-        return UNRECORDED
-    return YES
+    fits = [outcomes(report) or [UNRECORDED] for report in reports]
+    return worst(verdict for fit in fits for verdict in fit)
 
 
 def worst(verdicts: Iterable[str]) -> str:
-    """The verdict of several fits' verdicts (e.g. one row's over a system's tasks)."""
+    """The verdict of several verdicts (a fit's trainings, a row's cells): :data:`DIVERGED`
+    over :data:`NO` over :data:`UNRECORDED` over :data:`YES`; :data:`UNTRAINED` if none."""
     present = set(verdicts)
-    for candidate in (NO, UNRECORDED, YES):
+    for candidate in (DIVERGED, NO, UNRECORDED, YES):
         if candidate in present:
             return candidate
     return UNTRAINED

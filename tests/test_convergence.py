@@ -13,7 +13,7 @@ def test_a_fit_converged_when_every_training_did():
     converged = report(
         phase1_log={"decoder": {"converged": True}}, training_log={"converged": True}
     )
-    assert convergence.flags(converged) == [True, True]
+    assert convergence.outcomes(converged) == ["yes", "yes"]
     assert convergence.verdict([converged, converged]) == convergence.YES
 
 
@@ -31,6 +31,7 @@ def test_fits_without_curves_are_not_recorded_and_filters_untrained():
 def test_the_worst_verdict_of_a_row():
     assert convergence.worst(["yes", "not recorded", "yes"]) == "not recorded"
     assert convergence.worst(["yes", "no", "not recorded"]) == "no"
+    assert convergence.worst(["no", "diverged", "yes"]) == "diverged"
     assert convergence.worst(["", ""]) == ""
     assert convergence.worst(["yes", ""]) == "yes"
 
@@ -40,7 +41,15 @@ def test_the_verdict_reads_the_curve_not_the_stored_flag():
     stuck = report(
         training_log={"validation_curve": [[0, 0.3], [50, 37.2], [100, 37.2]], "converged": True}
     )
-    assert convergence.flags(stuck) == [False]
+    assert convergence.outcomes(stuck) == ["diverged"]
+    assert convergence.verdict([stuck]) == "diverged"
+
+
+def test_a_curve_still_falling_did_not_converge_and_did_not_diverge():
+    falling = report(training_log={"validation_curve": [[0, 1.0], [50, 0.40], [100, 0.30]]})
+    assert convergence.outcomes(falling) == ["no"]
+    stored = report(training_log={"converged": False})  # no curve: divergence unknown
+    assert convergence.outcomes(stored) == ["no"]
 
 
 def test_curves_are_found_with_the_path_that_leads_to_them():

@@ -112,3 +112,18 @@ def test_a_resumed_training_keeps_its_validation_curve(tmp_path, clock):
 )
 def test_the_convergence_rule_reads_the_second_half(curve, expected):
     assert convergence.converged(curve) is expected
+
+
+@pytest.mark.parametrize(
+    ("curve", "expected"),
+    [
+        ([(0, 1.0), (50, 0.40), (100, 0.30)], "no"),  # still falling: more steps may help
+        ([(0, 0.3), (50, 37.2), (100, 37.2)], "diverged"),  # at its clip bounds
+        ([(0, 1.0), (50, 0.3), (100, 0.61)], "diverged"),  # ended above twice its best
+        ([(0, 1.0), (50, 0.3), (100, 0.59)], "yes"),  # rose, but by less than that
+        ([(0, 1.0), (75, float("inf")), (100, 0.5)], "diverged"),
+        ([(0, 1.0), (100, 0.5)], "not recorded"),
+    ],
+)
+def test_each_training_is_judged_yes_no_or_diverged(curve, expected):
+    assert convergence.outcome(curve) == expected

@@ -206,7 +206,15 @@ def test_report_states_exponents_crossovers_and_failures():
     assert "| Converged " in text and "| yes " in text
     assert "| kkl         | 0.00   | 3.00       | 2.00               | 0.50              |" in text
     assert "| ekf         | 0.00   | -          | 0.00               | 1.00              |" in text
-    assert "| kkl         | every n    | every n   |" in text
+    assert "| kkl         | every n timed | every n timed |" in text
+    study.loc[study["estimator"] == "kkl", "us_per_step_batch1"] = math.nan
+    study.loc[(study["estimator"] == "kkl") & (study["n"] == 40), "us_per_step_batch20"] = math.nan
+    study.loc[(study["estimator"] == "kkl") & (study["n"] == 20), "us_per_step_batch20"] = 1e9
+    text = render_scaling(study, "standard")
+    assert "| kkl         | n = 5, 10  | not timed |" in text
+    study.loc[study["estimator"] == "kkl", "us_per_step_batch20"] *= 1e9
+    text = render_scaling(study, "standard")  # timed up to n = 20, not at 40
+    assert "| kkl         | never up to n = 20 | not timed |" in text
 
 
 def render_scaling(frame, profile):

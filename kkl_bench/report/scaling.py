@@ -60,7 +60,13 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
     ]
     cheaper = crossover(frame)
     crossings = [
-        [estimator, *(_crossing(cheaper.get((estimator, batch), []), sizes) for batch in BATCHES)]
+        [
+            estimator,
+            *(
+                _crossing(cheaper[estimator, batch], _timed_sizes(frame, estimator, column))
+                for batch, column in zip(BATCHES, ONLINE, strict=True)
+            ),
+        ]
         for estimator in sorted({name for name, _ in cheaper})
     ]
     note = (
@@ -80,7 +86,8 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 "(stored with each trained model, so a KKL observer's shared Phase 1 counts in "
                 "every KKL row; '-' for a model trained before training times were recorded). "
                 "Converged: whether every training's validation curve had flattened (protocol "
-                "6.5; 'not recorded' for a model trained before the curves were). "
+                "6.5; 'no': a curve still falling, 'diverged': one that ended above twice its "
+                "best, 'not recorded': a model trained before the curves were). "
                 "Online cost: the fastest of three timed calls on the first "
                 f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
                 f"turn in one run on one thread.{_later_runs(frame)}"
@@ -179,10 +186,18 @@ def _exponent(value: float) -> str:
     return f"{round(value, 2) + 0.0:.2f}" if math.isfinite(value) else "-"  # no "-0.00"
 
 
-def _crossing(cheaper: list[int], sizes: Sequence[int]) -> str:
+def _timed_sizes(frame: pd.DataFrame, estimator: str, column: str) -> list[int]:
+    """The sizes at which ``estimator``'s online cost ``column`` was measured, ascending."""
+    rows = frame[(frame["estimator"] == estimator) & frame[column].notna()]
+    return sorted(int(n) for n in rows["n"])
+
+
+def _crossing(cheaper: list[int], timed: Sequence[int]) -> str:
+    if not timed:
+        return "not timed"
     if not cheaper:
-        return f"never up to n = {max(sizes)}"
-    return "every n" if cheaper == sorted(sizes) else "n = " + ", ".join(map(str, cheaper))
+        return f"never up to n = {max(timed)}"
+    return "every n timed" if cheaper == list(timed) else "n = " + ", ".join(map(str, cheaper))
 
 
 def curves_section(curves: pd.DataFrame) -> Section:
