@@ -278,7 +278,10 @@ networks are cached and shared: Phase 1 counts in the fit time of the first
 KKL estimator that trained it, and a variant that changes only how trained
 networks are used online (such as `[guard=True]`) shows only the time to load
 them; a fit resumed from its checkpoints after an interruption shows only
-the time since it resumed. """
+the time since it resumed. Converged (protocol 6.5, read from each training's
+validation curve): `yes` when every curve had flattened, `no` when one was
+still falling as its budget ended, `diverged` when one ended above twice its
+best error, `not recorded` for models trained before the curves were. """
 
 
 def cost_source(costs: pd.DataFrame | None) -> str:
