@@ -120,6 +120,7 @@ def measure(
     holds the model). ``out`` is written after every round: an interrupted run keeps what
     it measured. ``replace`` drops the rows stored before. Returns this run's rows.
     """
+    commit = provenance()["git_commit"]  # the code that runs, read before anything is loaded
     stored = None if replace else read_costs(out)
     run = 1 if stored is None or stored.empty else int(stored["run"].max()) + 1
     timed = list(dict.fromkeys([*spec.estimators, REFERENCE]))
@@ -141,7 +142,6 @@ def measure(
     with thread_limit(threads):
         for name, task in calls:
             warm_up(fitted[name, task.system], test_sets[task])
-    commit = provenance()["git_commit"]
 
     def rows(best: dict, counts: dict) -> pd.DataFrame:
         return pd.DataFrame(

@@ -62,6 +62,11 @@ GROWTHS = {
     "us_per_step_batch1": "µs / trajectory-step, batch 1",
 }
 """Everything whose growth with n gets an exponent and a panel: the error and the costs."""
+RMSE_RATIO = "rmse_over_reference"
+"""A row's RMSE over the reference's at the same n."""
+SPEEDUPS = tuple(f"speedup_batch{batch}" for batch in BATCHES)
+"""The reference's online cost in a row's own timing run over the row's, per batch: how many
+times cheaper online than the reference the row is (above 1: cheaper)."""
 
 
 def system_name(n: int) -> str:
@@ -280,12 +285,23 @@ def add_timings(stored: pd.DataFrame, new: pd.DataFrame) -> pd.DataFrame:
 
 
 def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
-    """One row per (estimator, n): :func:`cell_summary`'s columns and the timings
-    (:func:`timing_frame`, :func:`add_timings`)."""
+    """One row per (estimator, n): :func:`cell_summary`'s columns, the timings
+    (:func:`timing_frame`, :func:`add_timings`) and the ratios to the reference
+    (:data:`RMSE_RATIO`, :data:`SPEEDUPS`; NaN where either side has no number)."""
     frame = cells.merge(timings, on=["estimator", "n"], how="left")
     costs = [*ONLINE, *REFERENCE_ONLINE]
     frame[costs] = frame[costs].astype(float)  # NaN where untimed, also when nothing is
-    return frame.sort_values(["estimator", "n"]).reset_index(drop=True)
+    return with_ratios(frame).sort_values(["estimator", "n"]).reset_index(drop=True)
+
+
+def with_ratios(frame: pd.DataFrame) -> pd.DataFrame:
+    """``frame`` (estimator, n, rmse, :data:`ONLINE`, :data:`REFERENCE_ONLINE`) with
+    :data:`RMSE_RATIO` and :data:`SPEEDUPS` (NaN where either side has no number)."""
+    reference_rmse = frame[frame["estimator"] == REFERENCE].set_index("n")["rmse"]
+    ratios = {RMSE_RATIO: frame["rmse"] / frame["n"].map(reference_rmse).astype(float)}
+    for speedup, cost, reference in zip(SPEEDUPS, ONLINE, REFERENCE_ONLINE, strict=True):
+        ratios[speedup] = frame[reference] / frame[cost]
+    return frame.assign(**ratios)
 
 
 TRAINS = 1.0

@@ -101,7 +101,7 @@ def frame():
                     ekf_us_per_step_batch1=400 * size / 5.0,
                 )
             )
-    return pd.DataFrame(rows)
+    return scaling.with_ratios(pd.DataFrame(rows))
 
 
 def test_exponents_recover_power_laws():
@@ -172,7 +172,13 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
     assert merged.loc[("kkl", 10), "ekf_us_per_step_batch20"] == 600  # its run's EKF
     assert merged.loc[("ekf", 10), "us_per_step_batch20"] == 200  # the stored EKF stays
     assert merged.loc[("ekf", 10), "timing_run"] == 1
+    study = scaling.scaling_frame(summary, merged.reset_index()).set_index(["estimator", "n"])
+    assert study.loc[("kkl", 10), scaling.RMSE_RATIO] == pytest.approx(3.0)  # 0.3 / 0.1
+    assert study.loc[("kkl", 10), list(scaling.SPEEDUPS)].tolist() == [3.0, 3.0]  # its run's EKF
+    assert study.loc[("kkl", 5), list(scaling.SPEEDUPS)].tolist() == [1.0, 1.0]
     text = render_scaling(scaling.scaling_frame(summary, merged.reset_index()), "standard")
+    row = next(line for line in text.splitlines() if line.startswith("| kkl         | 10 "))
+    assert [cell.strip() for cell in row.split("|")[-4:-1]] == ["3", "3", "3"]
     assert (
         "Timing run 2 (code of commit f00d) added `kkl` at n = 10, beside the EKF at the same sizes (EKF in run 2: "
         "n = 10: 600 and 30 µs/step at batch 20 and 1 (run 1: 200 and 10))." in text

@@ -178,6 +178,7 @@ def scaling_study(args: argparse.Namespace) -> int:
         profile=get_profile(profile),
         cache_dir=args.cache or default_cache_dir(),
     )
+    commit = provenance()["git_commit"]  # the code that runs, read before anything is loaded
     study = args.out / "scaling.csv"
     stored = scaling.stored_timings(study if args.missing_only or args.render_only else None)
     wanted = [] if args.render_only else scaling.untimed(cells, stored)
@@ -188,7 +189,6 @@ def scaling_study(args: argparse.Namespace) -> int:
         )
     }
     if fitted:
-        commit = provenance()["git_commit"]
         timings = scaling.timing_frame(scaling.time_estimators(spec, fitted), commit)
         stored = scaling.add_timings(stored, timings)
     elif not args.render_only:

@@ -18,6 +18,8 @@ from kkl_bench.scaling import (
     REFERENCE,
     REFERENCE_ONLINE,
     REGIME,
+    RMSE_RATIO,
+    SPEEDUPS,
     STEPS,
     TRACK,
     crossover,
@@ -42,6 +44,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                     row.converged if ok else "-",
                     _cost(row.us_per_step_batch20),
                     _cost(row.us_per_step_batch1),
+                    *(_cost(getattr(row, column)) for column in (RMSE_RATIO, *SPEEDUPS)),
                 ]
             )
     fitted = exponents(frame)
@@ -90,7 +93,9 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 "best, 'not recorded': a model trained before the curves were). "
                 "Online cost: the fastest of three timed calls on the first "
                 f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
-                f"turn in one run on one thread.{_later_runs(frame)}"
+                f"turn in one run on one thread. RMSE / EKF: the row's RMSE over the EKF's at "
+                "the same n; EKF cost / cost: the EKF's µs/step in the row's own timing run over "
+                f"the row's (above 1: the row is that many times cheaper).{_later_runs(frame)}"
             ),
             _table(
                 table,
@@ -102,6 +107,9 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                     "Converged",
                     "µs/step, batch 20",
                     "µs/step, batch 1",
+                    "RMSE / EKF",
+                    "EKF cost / cost, batch 20",
+                    "batch 1",
                 ],
             ),
             *_unsupported(frame),
