@@ -340,21 +340,32 @@ def _static_provenance() -> dict[str, Any]:
     }
 
 
-def _git_commit() -> str | None:
-    """The checkout's commit (with ``-dirty`` if modified), or None outside a git checkout."""
-    source = Path(__file__).resolve().parent
+PACKAGE = Path(__file__).resolve().parent
+PUBLISHED = "leaderboard"
+"""The checkout's folder of published results: runs write there, so a change in it does not
+make the code dirty (:func:`_git_commit`)."""
+
+
+def _git_commit(source: Path = PACKAGE) -> str | None:
+    """The commit of the checkout holding ``source`` (this package), with ``-dirty`` if a
+    tracked file outside :data:`PUBLISHED` is modified; None outside a git checkout."""
     try:
-        described = subprocess.run(
-            ["git", "describe", "--always", "--dirty", "--abbrev=12"],
-            cwd=source,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
+        commit = _git(source, "describe", "--always", "--abbrev=12")
+        changed = _git(
+            source,
+            *("status", "--porcelain", "--untracked-files=no", "--"),
+            *(":(top)", f":(top,exclude){PUBLISHED}"),
         )
     except (OSError, subprocess.SubprocessError):
         return None
-    return described.stdout.strip() or None
+    return (commit + ("-dirty" if changed else "")) or None
+
+
+def _git(folder: Path, *arguments: str) -> str:
+    """The stripped output of ``git arguments`` run in ``folder``."""
+    return subprocess.run(
+        ["git", *arguments], cwd=folder, capture_output=True, text=True, timeout=10, check=True
+    ).stdout.strip()
 
 
 # JSON has no inf/nan: they are stored as the strings "inf", "-inf", "nan".

@@ -3,10 +3,12 @@
 import json
 import math
 import os
+import subprocess
 
 import numpy as np
 import pytest
 
+from kkl_bench import results
 from kkl_bench.results import (
     CellResult,
     KeptEstimate,
@@ -99,3 +101,22 @@ def test_a_format_1_record_reads_as_a_paper_track_cell(tmp_path):
     path.write_text(json.dumps(record))
     cell = read_cell(path)
     assert (cell.track, cell.settling_time_s, cell.record_format) == ("paper", [], 1)
+
+
+def test_the_commit_is_dirty_for_changed_code_not_for_changed_results(tmp_path):
+    def git(*arguments):
+        subprocess.run(["git", "-C", str(tmp_path), *arguments], check=True, capture_output=True)
+
+    (tmp_path / "leaderboard").mkdir()
+    (tmp_path / "code.py").write_text("x = 1\n")
+    (tmp_path / "leaderboard" / "cell.json").write_text("{}\n")
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "start")
+    clean = results._git_commit(tmp_path)
+    assert clean and not clean.endswith("-dirty")
+    (tmp_path / "leaderboard" / "cell.json").write_text('{"rmse": 0.1}\n')  # a run wrote
+    assert results._git_commit(tmp_path) == clean
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert results._git_commit(tmp_path) == clean + "-dirty"
+    assert results._git_commit(tmp_path.parent / "absent") is None
