@@ -253,3 +253,10 @@ def test_curve_frame_gives_each_training_once_at_the_size_it_trained_at(tmp_path
     assert (
         "![validation curves](figures/scaling-curves.png)" in (tmp_path / "scaling.md").read_text()
     )
+
+
+def test_a_later_run_at_a_new_size_gives_the_ekf_costs_once():
+    study = frame()
+    study.loc[study["n"] == 40, "timing_run"] = 2  # the EKF and kkl first timed at 40 in run 2
+    text = render_scaling(study, "standard")
+    assert "(EKF in run 2: n = 40: 300 and 3.2e+03 µs/step at batch 20 and 1)." in text

@@ -151,8 +151,7 @@ def _later_runs(frame: pd.DataFrame) -> str:
         costs = ", ".join(
             f"n = {row.n}: {_cost(getattr(row, REFERENCE_ONLINE[0]))} and "
             f"{_cost(getattr(row, REFERENCE_ONLINE[1]))} µs/step at batch "
-            f"{BATCHES[0]} and {BATCHES[1]} (run {int(reference.loc[row.n, 'timing_run'])}: "
-            f"{_cost(reference.loc[row.n, ONLINE[0]])} and {_cost(reference.loc[row.n, ONLINE[1]])})"
+            f"{BATCHES[0]} and {BATCHES[1]}{_stored_reference(reference, row.n, run)}"
             for row in rows.drop_duplicates("n").sort_values("n").itertuples()
         )
         commit = rows["timing_commit"].iloc[0]
@@ -162,6 +161,16 @@ def _later_runs(frame: pd.DataFrame) -> str:
             f"sizes ({REFERENCE.upper()} in run {run}: {costs})."
         )
     return "".join(sentences)
+
+
+def _stored_reference(reference: pd.DataFrame, n: int, run: int) -> str:
+    """The reference's own costs at ``n`` in brackets, with the run that timed them, unless
+    that is ``run`` itself (then they are the costs just given)."""
+    stored_run = int(reference.loc[n, "timing_run"])
+    if stored_run == run:
+        return ""
+    costs = " and ".join(_cost(reference.loc[n, column]) for column in ONLINE)
+    return f" (run {stored_run}: {costs})"
 
 
 def _rmse(row) -> str:
