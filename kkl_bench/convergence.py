@@ -38,32 +38,29 @@ def diverged(curve: list[tuple[int, float]] | list[list[float]]) -> bool:
     return bool(errors) and errors[-1] > DIVERGED_RATIO * min(errors)
 
 
-def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None:
-    """Whether the training behind a validation ``curve`` (``(step, error)`` pairs in
-    step order) had converged: it did not diverge (:func:`diverged`) and its last error
-    is no more than :data:`CONVERGENCE_TOLERANCE` below the best error of the first half
-    of its steps. The second half, not the last quarter: under the cosine schedule the
+def outcome(curve: list[tuple[int, float]] | list[list[float]]) -> str:
+    """The verdict on the training behind a validation ``curve`` (``(step, error)`` pairs in
+    step order): :data:`DIVERGED` (:func:`diverged`); :data:`YES` if its last error is no
+    more than :data:`CONVERGENCE_TOLERANCE` below the best error of the first half of its
+    steps, else :data:`NO`; :data:`UNRECORDED` for a curve of fewer than three points,
+    which cannot say. The second half, not the last quarter: under the cosine schedule the
     last quarter gets 2.5 % of the learning rate's integral and looks flat whether or not
     the budget ran out; the second half gets 18 %. An error that rose a little again
-    counts as converged (more steps would not lower it). None for a curve of fewer than
-    three points, which cannot say."""
-    if len(curve) < 3:
-        return None
-    if diverged(curve):
-        return False
-    last_step, last = curve[-1]
-    first_half = [error for step, error in curve if step <= 0.5 * last_step]
-    return last >= (1.0 - CONVERGENCE_TOLERANCE) * min(first_half)
-
-
-def outcome(curve: list[tuple[int, float]] | list[list[float]]) -> str:
-    """The verdict on one training's validation ``curve``: :data:`YES`, :data:`NO`,
-    :data:`DIVERGED` or :data:`UNRECORDED` (too short to say)."""
+    counts as converged (more steps would not lower it)."""
     if len(curve) < 3:
         return UNRECORDED
     if diverged(curve):
         return DIVERGED
-    return YES if converged(curve) else NO
+    last_step, last = curve[-1]
+    first_half = [error for step, error in curve if step <= 0.5 * last_step]
+    return YES if last >= (1.0 - CONVERGENCE_TOLERANCE) * min(first_half) else NO
+
+
+def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None:
+    """Whether the training behind ``curve`` converged (:func:`outcome` is :data:`YES`),
+    as fit reports store it; None for a curve too short to say."""
+    verdict = outcome(curve)
+    return None if verdict == UNRECORDED else verdict == YES
 
 
 def outcomes(report: Any) -> list[str]:
