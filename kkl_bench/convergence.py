@@ -59,8 +59,8 @@ def outcome(curve: list[tuple[int, float]] | list[list[float]]) -> str:
 def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None:
     """Whether the training behind ``curve`` converged (:func:`outcome` is :data:`YES`),
     as fit reports store it; None for a curve too short to say."""
-    verdict = outcome(curve)
-    return None if verdict == UNRECORDED else verdict == YES
+    judged = outcome(curve)
+    return None if judged == UNRECORDED else judged == YES
 
 
 def outcomes(report: Any) -> list[str]:
@@ -105,7 +105,7 @@ def verdict(reports: Iterable[Any]) -> str:
     if not reports:
         return UNTRAINED
     fits = [outcomes(report) or [UNRECORDED] for report in reports]
-    return worst(verdict for fit in fits for verdict in fit)
+    return worst(judged for fit in fits for judged in fit)
 
 
 def worst(verdicts: Iterable[str]) -> str:

@@ -358,7 +358,9 @@ def _git_commit(source: Path = PACKAGE) -> str | None:
         )
     except (OSError, subprocess.SubprocessError):
         return None
-    return (commit + ("-dirty" if changed else "")) or None
+    if not commit:
+        return None
+    return commit + ("-dirty" if changed else "")
 
 
 def _git(folder: Path, *arguments: str) -> str:

@@ -176,7 +176,7 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
     assert study.loc[("kkl", 10), scaling.RMSE_RATIO] == pytest.approx(3.0)  # 0.3 / 0.1
     assert study.loc[("kkl", 10), list(scaling.SPEEDUPS)].tolist() == [3.0, 3.0]  # its run's EKF
     assert study.loc[("kkl", 5), list(scaling.SPEEDUPS)].tolist() == [1.0, 1.0]
-    text = render_scaling(scaling.scaling_frame(summary, merged.reset_index()), "standard")
+    text = render_scaling(study.reset_index(), "standard")
     row = next(line for line in text.splitlines() if line.startswith("| kkl         | 10 "))
     assert [cell.strip() for cell in row.split("|")[-4:-1]] == ["3", "3", "3"]
     assert (
