@@ -78,7 +78,8 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
 
     ``results``: the store's cells (:func:`~kkl_bench.results.load_results`).
     Columns: estimator, n, status (``ok``; ``unsupported`` when every cell not scored
-    is, the estimator refusing the system; else ``error``), reason (what the first cell
+    is, the estimator refusing the system; :data:`NOT_RUN` at a size the results hold
+    cells of but none of this estimator; else ``error``), reason (what the first cell
     not scored says: the unsupported reason, or the error's last line), rmse, nrmse,
     fit_time_s (:func:`training_seconds`, else the fit's wall time for an estimator
     that does not train; NaN for a model trained before training times were recorded)
@@ -114,7 +115,25 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
                 "converged": convergence.worst(cells["converged"]),
             }
         )
-    return pd.DataFrame(rows)
+    return _with_sizes_not_run(pd.DataFrame(rows))
+
+
+NOT_RUN = "not run"
+"""The status of a size the results hold cells of, for an estimator that has none there."""
+
+
+def _with_sizes_not_run(summary: pd.DataFrame) -> pd.DataFrame:
+    """``summary`` with a :data:`NOT_RUN` row for each (estimator, n) it lacks among the
+    sizes it holds: a cell never run is shown as such, not left out of the study."""
+    every = pd.MultiIndex.from_product(
+        [sorted(set(summary["estimator"])), sorted(set(summary["n"]))], names=["estimator", "n"]
+    )
+    have = pd.MultiIndex.from_frame(summary[["estimator", "n"]])
+    missing = every.difference(have).to_frame(index=False)
+    if missing.empty:
+        return summary
+    missing = missing.assign(status=NOT_RUN, reason="no result stored", converged="")
+    return pd.concat([summary, missing], ignore_index=True)
 
 
 def curve_frame(results: pd.DataFrame, seed: int = 0, sizes: Sequence[int] = SIZES) -> pd.DataFrame:

@@ -49,6 +49,15 @@ def test_cell_summary_averages_regimes_and_reports_failures():
     assert summary.loc[("big", 10), "reason"] == "MemoryError: 40 GB"
     assert math.isnan(summary.loc[("big", 10), "rmse"])
     assert summary.loc[("ekf", 5), "converged"] == ""  # nothing trained
+    assert len(summary) == 4
+    summary = scaling.cell_summary(results[results["system"] != "lorenz96-n10"])
+    assert set(summary["n"]) == {5}  # no size is invented
+    only_ekf_at_10 = results[
+        (results["estimator"] == "ekf") | (results["system"] != "lorenz96-n10")
+    ]
+    summary = scaling.cell_summary(only_ekf_at_10).set_index(["estimator", "n"])
+    assert summary.loc[("big", 10), "status"] == scaling.NOT_RUN
+    assert math.isnan(summary.loc[("big", 10), "rmse"])
     with pytest.raises(ValueError, match="no more-systems cells of lorenz96-n5"):
         scaling.cell_summary(results[results["track"] == "paper"])
 
@@ -209,6 +218,14 @@ def test_report_states_exponents_crossovers_and_failures():
     text = render_scaling(study, "standard")
     assert "| kkl         | 40  | unsupported " in text
     assert "- `kkl` at n = 40: too big here" in text
+    never_run = study.copy()
+    never_run.loc[[6, 7], ["status", "reason", "rmse"]] = [scaling.NOT_RUN, "none", math.nan]
+    text = render_scaling(never_run, "standard")
+    assert "| kkl         | 40  | not run " in text
+    assert (
+        '- `kkl` at n = 20, 40: `kkl-bench run --estimator "kkl" --track more-systems '
+        "--profile standard --system lorenz96-n20 lorenz96-n40`"
+    ) in text
     assert "| Converged " in text and "| yes " in text
     assert "| kkl         | 0.00   | 3.00       | 2.00               | 0.50              |" in text
     assert "| ekf         | 0.00   | -          | 0.00               | 1.00              |" in text

@@ -14,6 +14,7 @@ from kkl_bench.report.model import Figure, Section, Table, Text
 from kkl_bench.scaling import (
     BATCHES,
     GROWTHS,
+    NOT_RUN,
     ONLINE,
     REFERENCE,
     REFERENCE_ONLINE,
@@ -25,6 +26,7 @@ from kkl_bench.scaling import (
     crossover,
     exponents,
     scaling_frame,
+    system_name,
 )
 
 
@@ -113,6 +115,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 ],
             ),
             *_unsupported(frame),
+            *_not_run(frame, profile),
             Text("Fitted exponents p of value ~ n^p (least squares on log-log):"),
             _table(
                 exponent_table,
@@ -174,11 +177,13 @@ def _stored_reference(reference: pd.DataFrame, n: int, run: int) -> str:
 
 
 def _rmse(row) -> str:
-    """A size's RMSE cell: the RMSE, ``unsupported`` (reasons under the table) or the
-    failure's last line."""
+    """A size's RMSE cell: the RMSE, ``unsupported`` (reasons under the table), ``not run``
+    (commands under the table) or the failure's last line."""
     if row.status == "ok":
         return f"{row.rmse:.3g}"
-    return "unsupported" if row.status == "unsupported" else f"failed: {row.reason[:120]}"
+    if row.status in ("unsupported", NOT_RUN):
+        return row.status
+    return f"failed: {row.reason[:120]}"
 
 
 def _unsupported(frame: pd.DataFrame) -> list[Text]:
@@ -193,6 +198,20 @@ def _unsupported(frame: pd.DataFrame) -> list[Text]:
         for estimator, sizes, reason in groups
     ]
     return [Text("Unsupported (no fit, no number):\n\n" + "\n".join(lines))] if lines else []
+
+
+def _not_run(frame: pd.DataFrame, profile: str) -> list[Text]:
+    """The sizes each estimator has no result at, with the command that makes them."""
+    missing = frame[frame["status"] == NOT_RUN]
+    lines = [
+        f"- `{estimator}` at n = {', '.join(map(str, sorted(rows_of['n'])))}: "
+        f'`kkl-bench run --estimator "{estimator}" --track {TRACK} --profile {profile} --system '
+        + " ".join(system_name(n) for n in sorted(rows_of["n"]))
+        + "`"
+        for estimator, rows_of in missing.groupby("estimator")
+    ]
+    heading = "Not run yet (no result in the store; the command that makes it):"
+    return [Text(heading + "\n\n" + "\n".join(lines))] if lines else []
 
 
 def _cost(value: float) -> str:
