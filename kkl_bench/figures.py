@@ -41,6 +41,10 @@ def pyplot():
     return plt
 
 
+MARKERS = ("o", "s", "^", "D", "v")
+"""Markers cycled with the colours, so that no two of 20 lines look alike."""
+
+
 def _colors(names: Sequence[str]) -> dict[str, tuple]:
     """One stable colour per estimator (tab10, then tab20)."""
     plt = pyplot()
@@ -306,6 +310,7 @@ def scaling_figure(frame: pd.DataFrame, panels: Mapping[str, str]):
     plt = pyplot()
     names = sorted(set(frame["estimator"]))
     colors = _colors(names)
+    markers = {name: MARKERS[i % len(MARKERS)] for i, name in enumerate(names)}
     figure, axes = plt.subplots(
         1, len(panels), figsize=(4.4 * len(panels), 6.2), layout="constrained"
     )
@@ -315,7 +320,7 @@ def scaling_figure(frame: pd.DataFrame, panels: Mapping[str, str]):
             rows_of = frame[(frame["estimator"] == name) & np.isfinite(frame[column])]
             if not rows_of.empty:
                 (handles[name],) = axis.loglog(
-                    rows_of["n"], rows_of[column], marker="o", color=colors[name]
+                    rows_of["n"], rows_of[column], marker=markers[name], color=colors[name]
                 )
         axis.set_xlabel("state dimension n")
         axis.set_title(label)

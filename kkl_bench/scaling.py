@@ -328,19 +328,26 @@ TRAINS = 1.0
 build their model in microseconds); its fit time has no exponent."""
 
 
+def trained_fit_times(frame: pd.DataFrame) -> pd.Series:
+    """``frame``'s fit times, NaN for an estimator that does not train (:data:`TRAINS`):
+    a filter's fit time is the noise of building its model, not a cost that grows."""
+    trains = frame.groupby("estimator")["fit_time_s"].transform("max") >= TRAINS
+    return frame["fit_time_s"].where(trains)
+
+
 def exponents(frame: pd.DataFrame) -> pd.DataFrame:
     """Per estimator, the fitted exponent ``p`` of ``value ~ n^p`` for the RMSE and each
     cost (:data:`GROWTHS`; NaN with fewer than two finite, positive points, and for the
-    fit time of an estimator that does not train, see :data:`TRAINS`)."""
+    fit time of an estimator that does not train, see :func:`trained_fit_times`)."""
+    frame = frame.assign(fit_time_s=trained_fit_times(frame))
     rows = []
     for estimator, rows_of in frame.groupby("estimator"):
         row = {"estimator": estimator}
         for column in GROWTHS:
             points = rows_of[np.isfinite(rows_of[column]) & (rows_of[column] > 0)]
-            trains = column != "fit_time_s" or (points[column] >= TRAINS).any()
             row[column] = (
                 float(np.polyfit(np.log(points["n"]), np.log(points[column]), 1)[0])
-                if len(points) >= 2 and trains
+                if len(points) >= 2
                 else math.nan
             )
         rows.append(row)

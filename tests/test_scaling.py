@@ -113,6 +113,13 @@ def frame():
     return scaling.with_ratios(pd.DataFrame(rows))
 
 
+def test_only_estimators_that_train_have_fit_times_to_plot():
+    study = frame()
+    fit_times = scaling.trained_fit_times(study)
+    assert fit_times[study["estimator"] == "ekf"].isna().all()  # 1 ms: building a model
+    assert fit_times[study["estimator"] == "kkl"].tolist() == [10.0, 80.0, 640.0, 5120.0]
+
+
 def test_exponents_recover_power_laws():
     fitted = scaling.exponents(frame()).set_index("estimator")
     assert fitted.loc["kkl", "us_per_step_batch20"] == pytest.approx(2.0)
