@@ -38,6 +38,7 @@ from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.summary import summary_table
 from kkl_bench.systems.lorenz96 import SIZES
 from kkl_bench.task import Task, make_test_set
+from kkl_bench.tracks import get_track
 
 TRACK = "more-systems"
 REGIME = "sinusoid"
@@ -79,7 +80,8 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
     ``results``: the store's cells (:func:`~kkl_bench.results.load_results`).
     Columns: estimator, n, status (``ok``; ``unsupported`` when every cell not scored
     is, the estimator refusing the system; :data:`NOT_RUN` at a size the results hold
-    cells of but none of this estimator; else ``error``), reason (what the first cell
+    cells of but none of this estimator, or not of every regime of the track; else
+    ``error``), reason (what the first cell
     not scored says: the unsupported reason, or the error's last line), rmse, nrmse,
     fit_time_s (:func:`training_seconds`, else the fit's wall time for an estimator
     that does not train; NaN for a model trained before training times were recorded)
@@ -91,14 +93,16 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
             f"the results hold no {TRACK} cells of {', '.join(wanted)}; run "
             f"`kkl-bench run --track {TRACK} --estimator all` first"
         )
+    regimes = get_track(TRACK).task_names()
     rows = []
     for (estimator, system), cells in summary_table(track).groupby(["estimator", "system"]):
+        of = track[(track["estimator"] == estimator) & (track["system"] == system)]
+        absent = [regime for regime in regimes if regime not in set(of["regime"])]
+        if absent:  # a mean over fewer regimes would not be the row's RMSE
+            rows.append(_not_run(estimator, wanted[system], f"no result for {', '.join(absent)}"))
+            continue
         ok = cells[cells["status"] == "ok"]
-        failed = track[
-            (track["estimator"] == estimator)
-            & (track["system"] == system)
-            & (track["status"] != "ok")
-        ]
+        failed = of[of["status"] != "ok"]
         rows.append(
             {
                 "estimator": estimator,
@@ -107,11 +111,7 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
                 "reason": None if failed.empty else _last_line(failed["error"].iloc[0]),
                 "rmse": ok["rmse_mean"].mean() if failed.empty else math.nan,
                 "nrmse": ok["nrmse_mean"].mean() if failed.empty else math.nan,
-                "fit_time_s": _fit_seconds(
-                    track[(track["estimator"] == estimator) & (track["system"] == system)]
-                )
-                if failed.empty
-                else math.nan,
+                "fit_time_s": _fit_seconds(of) if failed.empty else math.nan,
                 "converged": convergence.worst(cells["converged"]),
             }
         )
@@ -119,21 +119,26 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
 
 
 NOT_RUN = "not run"
-"""The status of a size the results hold cells of, for an estimator that has none there."""
+"""The status of a size the results hold cells of, for an estimator that has none there or
+lacks some of the track's regimes."""
+
+
+def _not_run(estimator: str, n: int, reason: str) -> dict:
+    """A :data:`NOT_RUN` row of :func:`cell_summary`."""
+    return {"estimator": estimator, "n": n, "status": NOT_RUN, "reason": reason, "converged": ""}
 
 
 def _with_sizes_not_run(summary: pd.DataFrame) -> pd.DataFrame:
     """``summary`` with a :data:`NOT_RUN` row for each (estimator, n) it lacks among the
     sizes it holds: a cell never run is shown as such, not left out of the study."""
-    every = pd.MultiIndex.from_product(
-        [sorted(set(summary["estimator"])), sorted(set(summary["n"]))], names=["estimator", "n"]
-    )
-    have = pd.MultiIndex.from_frame(summary[["estimator", "n"]])
-    missing = every.difference(have).to_frame(index=False)
-    if missing.empty:
-        return summary
-    missing = missing.assign(status=NOT_RUN, reason="no result stored", converged="")
-    return pd.concat([summary, missing], ignore_index=True)
+    have = set(zip(summary["estimator"], summary["n"], strict=True))
+    missing = [
+        _not_run(estimator, n, "no result stored")
+        for estimator in sorted(set(summary["estimator"]))
+        for n in sorted(set(summary["n"]))
+        if (estimator, n) not in have
+    ]
+    return pd.concat([summary, pd.DataFrame(missing)], ignore_index=True) if missing else summary
 
 
 def curve_frame(results: pd.DataFrame, seed: int = 0, sizes: Sequence[int] = SIZES) -> pd.DataFrame:

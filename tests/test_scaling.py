@@ -10,8 +10,10 @@ from kkl_bench import scaling
 from kkl_bench.report import markdown
 from kkl_bench.report.scaling import study_section, write_study
 
+REGIMES = ("zero", "constant", "sinusoid", "square")
 
-def cells(estimator, n, rmse, fit_time, status="ok", regimes=("zero", "sinusoid"), report=None):
+
+def cells(estimator, n, rmse, fit_time, status="ok", regimes=REGIMES, report=None):
     return [
         dict(
             estimator=estimator,
@@ -57,7 +59,13 @@ def test_cell_summary_averages_regimes_and_reports_failures():
     ]
     summary = scaling.cell_summary(only_ekf_at_10).set_index(["estimator", "n"])
     assert summary.loc[("big", 10), "status"] == scaling.NOT_RUN
+    assert summary.loc[("big", 10), "reason"] == "no result stored"
     assert math.isnan(summary.loc[("big", 10), "rmse"])
+    half_run = results[(results["estimator"] != "ekf") | results["regime"].isin(["zero", "square"])]
+    summary = scaling.cell_summary(half_run).set_index(["estimator", "n"])
+    assert summary.loc[("ekf", 5), "status"] == scaling.NOT_RUN
+    assert summary.loc[("ekf", 5), "reason"] == "no result for constant, sinusoid"
+    assert math.isnan(summary.loc[("ekf", 5), "rmse"])
     with pytest.raises(ValueError, match="no more-systems cells of lorenz96-n5"):
         scaling.cell_summary(results[results["track"] == "paper"])
 
@@ -226,12 +234,12 @@ def test_report_states_exponents_crossovers_and_failures():
     assert "| kkl         | 40  | unsupported " in text
     assert "- `kkl` at n = 40: too big here" in text
     never_run = study.copy()
-    never_run.loc[[6, 7], ["status", "reason", "rmse"]] = [scaling.NOT_RUN, "none", math.nan]
+    never_run.loc[7, ["status", "reason", "rmse"]] = [scaling.NOT_RUN, "no result", math.nan]
     text = render_scaling(never_run, "standard")
     assert "| kkl         | 40  | not run " in text
     assert (
-        '- `kkl` at n = 20, 40: `kkl-bench run --estimator "kkl" --track more-systems '
-        "--profile standard --system lorenz96-n20 lorenz96-n40`"
+        '- `kkl` at n = 40: no result; `kkl-bench run --estimator "kkl" --track more-systems '
+        "--profile standard --system lorenz96-n40`"
     ) in text
     assert "| Converged " in text and "| yes " in text
     assert "| kkl         | 0.00   | 3.00       | 2.00               | 0.50              |" in text

@@ -202,16 +202,14 @@ def _unsupported(frame: pd.DataFrame) -> list[Text]:
 
 
 def _not_run(frame: pd.DataFrame, profile: str) -> list[Text]:
-    """The sizes each estimator has no result at, with the command that makes them."""
-    missing = frame[frame["status"] == NOT_RUN]
+    """The sizes each estimator lacks results at, with the command that makes them."""
+    missing = frame[frame["status"] == NOT_RUN].sort_values(["estimator", "n"])
     lines = [
-        f"- `{estimator}` at n = {', '.join(map(str, sorted(rows_of['n'])))}: "
-        f'`kkl-bench run --estimator "{estimator}" --track {TRACK} --profile {profile} --system '
-        + " ".join(system_name(n) for n in sorted(rows_of["n"]))
-        + "`"
-        for estimator, rows_of in missing.groupby("estimator")
+        f"- `{row.estimator}` at n = {row.n}: {row.reason}; `kkl-bench run --estimator "
+        f'"{row.estimator}" --track {TRACK} --profile {profile} --system {system_name(row.n)}`'
+        for row in missing.itertuples()
     ]
-    heading = "Not run yet (no result in the store; the command that makes it):"
+    heading = "Not run yet (the command that makes the missing cells):"
     return [Text(heading + "\n\n" + "\n".join(lines))] if lines else []
 
 
