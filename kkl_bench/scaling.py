@@ -38,7 +38,6 @@ from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.summary import summary_table
 from kkl_bench.systems.lorenz96 import SIZES
 from kkl_bench.task import Task, make_test_set
-from kkl_bench.tracks import get_track
 
 TRACK = "more-systems"
 REGIME = "sinusoid"
@@ -80,7 +79,7 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
     ``results``: the store's cells (:func:`~kkl_bench.results.load_results`).
     Columns: estimator, n, status (``ok``; ``unsupported`` when every cell not scored
     is, the estimator refusing the system; :data:`NOT_RUN` at a size the results hold
-    cells of but none of this estimator, or not of every regime of the track; else
+    cells of but none of this estimator, or not of every regime the results hold; else
     ``error``), reason (what the first cell
     not scored says: the unsupported reason, or the error's last line), rmse, nrmse,
     fit_time_s (:func:`training_seconds`, else the fit's wall time for an estimator
@@ -93,7 +92,7 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
             f"the results hold no {TRACK} cells of {', '.join(wanted)}; run "
             f"`kkl-bench run --track {TRACK} --estimator all` first"
         )
-    regimes = get_track(TRACK).task_names()
+    regimes = sorted(set(track["regime"]))  # what the study holds: a run may pick regimes
     rows = []
     for (estimator, system), cells in summary_table(track).groupby(["estimator", "system"]):
         of = track[(track["estimator"] == estimator) & (track["system"] == system)]
@@ -120,7 +119,7 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
 
 NOT_RUN = "not run"
 """The status of a size the results hold cells of, for an estimator that has none there or
-lacks some of the track's regimes."""
+lacks some of the regimes the results hold."""
 
 
 def _not_run(estimator: str, n: int, reason: str) -> dict:
