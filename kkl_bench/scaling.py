@@ -24,6 +24,7 @@ Everything the study reports is in the frame :func:`scaling_frame` returns;
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -100,6 +101,10 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
         if absent:  # a mean over fewer regimes would not be the row's RMSE
             rows.append(_not_run(estimator, wanted[system], f"no result for {', '.join(absent)}"))
             continue
+        if (fits := _fits(of)) > 1:  # the regimes' cells were not made by one model
+            reason = f"its cells come from {fits} fits (a rerun with --force that was cut off)"
+            rows.append(_not_run(estimator, wanted[system], reason, overwrite=True))
+            continue
         ok = cells[cells["status"] == "ok"]
         failed = of[of["status"] != "ok"]
         rows.append(
@@ -112,19 +117,42 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
                 "nrmse": ok["nrmse_mean"].mean() if failed.empty else math.nan,
                 "fit_time_s": _fit_seconds(of) if failed.empty else math.nan,
                 "converged": convergence.worst(cells["converged"]),
+                "overwrite": False,
             }
         )
     return _with_sizes_not_run(pd.DataFrame(rows))
 
 
 NOT_RUN = "not run"
-"""The status of a size the results hold cells of, for an estimator that has none there or
-lacks some of the regimes the results hold."""
+"""The status of a size the results hold cells of, for an estimator that has none there,
+lacks some of the regimes the results hold, or has cells of one seed from different fits."""
 
 
-def _not_run(estimator: str, n: int, reason: str) -> dict:
-    """A :data:`NOT_RUN` row of :func:`cell_summary`."""
-    return {"estimator": estimator, "n": n, "status": NOT_RUN, "reason": reason, "converged": ""}
+def _not_run(estimator: str, n: int, reason: str, overwrite: bool = False) -> dict:
+    """A :data:`NOT_RUN` row of :func:`cell_summary`; ``overwrite``: the cells that make it
+    must replace cells on disk (``kkl-bench run --force``)."""
+    return {
+        "estimator": estimator,
+        "n": n,
+        "status": NOT_RUN,
+        "reason": reason,
+        "converged": "",
+        "overwrite": overwrite,
+    }
+
+
+def _fits(cells: pd.DataFrame) -> int:
+    """How many fits made ``cells`` (one estimator on one system), the most of any seed.
+
+    Every cell of one fit keeps that fit's report; a model loaded from the cache keeps the
+    report it was trained with. Two reports in one seed mean cells of two trainings: a
+    ``--force`` rerun cut off after scoring some of the regimes."""
+    if "fit_report" not in cells:
+        return 1
+    reports = cells["fit_report"].map(
+        lambda report: json.dumps(report, sort_keys=True, default=str)
+    )
+    return int(reports.groupby(cells["seed"]).nunique().max())
 
 
 def _with_sizes_not_run(summary: pd.DataFrame) -> pd.DataFrame:

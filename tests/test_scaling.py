@@ -70,6 +70,22 @@ def test_cell_summary_averages_regimes_and_reports_failures():
         scaling.cell_summary(results[results["track"] == "paper"])
 
 
+def test_a_row_whose_regimes_come_from_two_fits_is_not_run():
+    """A ``--force`` rerun cut off after two regimes leaves cells of two trainings."""
+    old, new = {"spent": {"decoder": {"seconds": 9.0}}}, {"spent": {"decoder": {"seconds": 8.0}}}
+    mixed = cells("big", 5, 0.2, 30.0, regimes=REGIMES[:2], report=new)
+    mixed += cells("big", 5, 0.3, 31.0, regimes=REGIMES[2:], report=old)
+    other_seed = [{**cell, "seed": 1} for cell in cells("big", 5, 0.3, 30.0, report=old)]
+    summary = scaling.cell_summary(pd.DataFrame(mixed + other_seed)).set_index(["estimator", "n"])
+    assert summary.loc[("big", 5), "status"] == scaling.NOT_RUN
+    assert summary.loc[("big", 5), "reason"].startswith("its cells come from 2 fits")
+    assert summary.loc[("big", 5), "overwrite"]
+    one_fit = cells("big", 5, 0.2, 30.0, report=new) + other_seed
+    summary = scaling.cell_summary(pd.DataFrame(one_fit)).set_index(["estimator", "n"])
+    assert summary.loc[("big", 5), "status"] == "ok"  # a seed per fit is not a mix
+    assert not summary.loc[("big", 5), "overwrite"]
+
+
 def test_fit_time_is_the_training_time_of_every_phase_wherever_it_ran():
     def spent(phase1, phase2):
         return {"spent": {"phase1": phase1, "phase2": phase2}}
@@ -110,6 +126,7 @@ def frame():
                     nrmse=0.01,
                     fit_time_s=fit[i],
                     converged="" if name == "ekf" else "yes",
+                    overwrite=False,
                     timing_run=1,
                     timing_commit="abc",
                     us_per_step_batch20=batch20[i],
@@ -241,6 +258,8 @@ def test_report_states_exponents_crossovers_and_failures():
         '- `kkl` at n = 40: no result; `kkl-bench run --estimator "kkl" --track more-systems '
         "--profile standard --system lorenz96-n40`"
     ) in text
+    never_run.loc[7, "overwrite"] = True
+    assert "--system lorenz96-n40 --force`" in render_scaling(never_run, "standard")
     assert "| Converged " in text and "| yes " in text
     assert "| kkl         | 0.00   | 3.00       | 2.00               | 0.50              |" in text
     assert "| ekf         | 0.00   | -          | 0.00               | 1.00              |" in text

@@ -206,7 +206,8 @@ def _not_run(frame: pd.DataFrame, profile: str) -> list[Text]:
     missing = frame[frame["status"] == NOT_RUN].sort_values(["estimator", "n"])
     lines = [
         f"- `{row.estimator}` at n = {row.n}: {row.reason}; `kkl-bench run --estimator "
-        f'"{row.estimator}" --track {TRACK} --profile {profile} --system {system_name(row.n)}`'
+        f'"{row.estimator}" --track {TRACK} --profile {profile} --system {system_name(row.n)}'
+        f"{' --force' if row.overwrite else ''}`"
         for row in missing.itertuples()
     ]
     heading = "Not run yet (the command that makes the missing cells):"
