@@ -7,6 +7,7 @@ import torch
 
 from kkl_bench import convergence
 from kkl_bench.kkl import optimize
+from kkl_bench.results import provenance
 
 
 class Interrupted(Exception):
@@ -41,7 +42,18 @@ def train(cache_dir, clock, steps, interrupt_at=None):
 
 def test_the_ledger_counts_steps_samples_and_wall_time(tmp_path, clock):
     spent = train(tmp_path, clock, steps=10)
-    assert spent.as_dict() == {"steps": 20, "samples": 60, "seconds": 20.0, "device": "cpu"}
+    assert spent.as_dict() == {
+        "steps": 20,
+        "samples": 60,
+        "seconds": 20.0,
+        "device": "cpu",
+        "git_commit": provenance()["git_commit"],
+    }
+
+
+def test_the_ledger_names_the_commit_that_trained(tmp_path, clock, monkeypatch):
+    monkeypatch.setattr(optimize, "provenance", lambda: {"git_commit": "0123abcd-dirty"})
+    assert train(tmp_path, clock, steps=2).as_dict()["git_commit"] == "0123abcd-dirty"
 
 
 def test_a_resumed_training_counts_the_time_spent_before_the_interruption(tmp_path, clock):

@@ -26,6 +26,7 @@ from kkl_bench.devices import resolve as resolve_device
 from kkl_bench.executors import EXECUTORS
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators, systems
+from kkl_bench.results import provenance
 from kkl_bench.task import get_profile
 from kkl_bench.tracks import load_tracks
 
@@ -121,6 +122,13 @@ def run_command(args: argparse.Namespace) -> int:
     )
     if args.scheduler is None:  # local workers: a missing GPU is an error before any work
         resolve_device(args.device)
+    commit = provenance()["git_commit"]
+    if commit is not None and commit.endswith("-dirty"):
+        print(
+            f"kkl-bench: the code has uncommitted changes ({commit}): the cells and any model "
+            "trained now record a commit that does not hold the code that made them",
+            file=sys.stderr,
+        )
     total = sum(  # every row's cells, the +logged rows' included
         len(spec.seeds_for(name)) * len(tasks)
         for name in spec.estimators

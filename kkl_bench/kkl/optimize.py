@@ -33,6 +33,7 @@ from tqdm import tqdm
 from kkl_bench import status
 from kkl_bench.convergence import converged
 from kkl_bench.kkl.cache import CheckpointCache
+from kkl_bench.results import provenance
 
 RESUME_KIND = "kkl-resume"
 CHECKPOINT_EVERY = 500
@@ -49,20 +50,25 @@ class Spent:
     wall time of the :func:`counting` block (data simulation included); a block
     inside a :func:`resumable` one that resumed from a checkpoint also counts the
     time the interrupted run had spent up to that checkpoint, so it reads as the
-    wall time of the uninterrupted training.
+    wall time of the uninterrupted training. ``git_commit`` is the commit of the code that
+    trained (``-dirty`` from a modified tree; :func:`kkl_bench.results.provenance`): it is
+    stored with the model, so a cell scored from a cached model records which code trained
+    it beside the commit that scored it.
     """
 
     steps: int = 0
     samples: int = 0
     seconds: float = 0.0
     device: str = "cpu"
+    git_commit: str | None = field(default_factory=lambda: provenance()["git_commit"])
 
-    def as_dict(self) -> dict[str, float | str]:
+    def as_dict(self) -> dict[str, float | str | None]:
         return {
             "steps": self.steps,
             "samples": self.samples,
             "seconds": self.seconds,
             "device": self.device,
+            "git_commit": self.git_commit,
         }
 
 
