@@ -1,10 +1,17 @@
-"""Extended Kalman filter baseline (filterpy), on the exact discrete-time model."""
+"""Extended Kalman filter baseline (filterpy and its compiled twin), on the exact discrete-time
+model."""
 
 from __future__ import annotations
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
-from kkl_bench.estimators.kalman import KalmanBaseline, box_prior, measurement_covariance
+from kkl_bench.estimators import kalman_kernels
+from kkl_bench.estimators.kalman import (
+    KalmanBaseline,
+    box_prior,
+    check_engine,
+    measurement_covariance,
+)
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
@@ -44,14 +51,33 @@ class ExtendedKalman(KalmanBaseline):
     ----------
     inflation: factor on the propagated covariance, ``P = inflation F P F^T + Q`` (1: the
         plain EKF; DAPPER's ``ExtKF(infl=a)`` at step ``dt`` is ``inflation = a**dt``).
+    engine: ``"compiled"`` or ``"reference"`` (filterpy; :mod:`kkl_bench.estimators.kalman`).
     """
 
     name = "ekf"
 
-    def __init__(self, inflation: float = 1.0) -> None:
+    def __init__(self, inflation: float = 1.0, engine: str = "reference") -> None:
         self.inflation = inflation
+        self.engine = engine
         if not (isinstance(inflation, int | float) and inflation >= 1.0):
             raise ValueError(f"ekf: inflation={inflation!r} must be a number of at least 1")
+        check_engine("ekf", engine)
+
+    def count_flops(self, model):
+        n, m = model.n_x, model.n_y
+        predict = model.step_flops + model.step_jacobian_flops + 4 * n**3 + n**2  # F P F^T + Q
+        gain = m * n + 2 * n * n * m + 2 * m * m * n + m * m + 2 * m**3 + 2 * n * m * m
+        correction = m + 2 * n * m  # the residual and x + K r
+        joseph = 2 * n * n * m + n * n + 4 * n**3 + 2 * n * m * m + 2 * n * n * m + n * n
+        return predict + gain + correction + joseph
+
+    def run_compiled(self, model, context, dt, y, u, out):
+        mean, covariance = box_prior(context)
+        kalman_kernels.ekf(
+            *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
+            context.sigma_w**2 * np.eye(model.n_x), measurement_covariance(context),
+            float(self.inflation), out,
+        )  # fmt: skip
 
     def make_filter(self, context: FitContext, dt: float):
         kalman_filter = _RK4ExtendedKalmanFilter(context.system, dt, self.inflation)

@@ -31,6 +31,7 @@ vectorised over members and trajectories. The estimate is the analysis mean.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -214,6 +215,25 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             "inflation": self.inflation_,
             **({"inflation_selection": self.scores_} if self.scores_ else {}),
         }
+
+    def flops_per_step(self) -> float:
+        """Flops of one trajectory-step: every member's RK4 step and noise, and the
+        analysis in the space of the ``N`` members (its eigendecomposition counted as
+        ``9 N^3``); with localization, one analysis per site over every measurement (an
+        upper bound: a site weighs only the measurements within ``2 r``). NaN for a system
+        without a compiled model (no declared drift count)."""
+        model = self.check_fitted().system.compiled()
+        if model is None:
+            return math.nan
+        members, n, m = self.n, model.n_x, model.n_y
+        forecast = members * (model.step_flops + n)
+        means = 2 * members * n + 3 * members * m
+        precision = 2 * members * members * m + members + 9 * members**3
+        weights = 2 * members * m + 4 * members * members + members + m
+        root = members * members + 2 * members**3 + members
+        update = 2 * members * members * n + members * members + members * n
+        analyses = n if self.localization is not None else 1
+        return float(forecast + analyses * (means + precision + weights + root + update))
 
     def estimate(self, t, y, u):
         context = self.check_fitted()

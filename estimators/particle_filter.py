@@ -44,6 +44,8 @@ of trajectories that bound the memory.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from kkl_bench.estimators.kalman import box_prior
 from kkl_bench.estimators.monte_carlo import trajectory_generators
@@ -346,6 +348,16 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
 
     def fit_report(self):
         return {**super().fit_report(), "particles": self.n, "proposal": self.proposal}
+
+    def flops_per_step(self) -> float:
+        """Flops of one trajectory-step: per particle, the RK4 step, the proposal's mean
+        (``2 n m + m``), its draw and density (``3 n^2 + n``), the weight, and resampling
+        (about 13 more); NaN for a system without a compiled model."""
+        model = self.check_fitted().system.compiled()
+        if model is None:
+            return math.nan
+        n, m = model.n_x, model.n_y
+        return float(self.n * (model.step_flops + 2 * n * m + m + 3 * n * n + n + 13))
 
     def estimate(self, t, y, u):
         context = self.check_fitted()

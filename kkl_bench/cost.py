@@ -16,8 +16,16 @@ regime): the rows it timed replace their namesakes, every other row keeps its
 own run, commit and reference cost (``replace=True`` rewrites the file whole).
 
 One thread is the default: it is what each worker of ``kkl-bench run --jobs 2``
-has on two cores, and all the filters' Python loops use. The published cost
-table reads the result (:data:`COST_FILE`) in place of the cells' own times.
+has on two cores. The published cost table reads the result (:data:`COST_FILE`) in
+place of the cells' own times.
+
+A row's cost is its algorithm's, not its Python loop's (protocol 6.3): a model-based row
+with engines (``engine=`` of ``ekf`` and ``ukf``) is timed on its compiled engine, and
+its reference engine (filterpy) is timed beside it in the same run. Every row also
+carries its arithmetic: the flops of one trajectory-step (the estimator's own count,
+``flops_per_step()``, for the filters; torch's flop counter over the timed estimate for
+the networks), this machine's peak in the row's precision measured in the same run
+(:func:`peak_gflops`), the floor they imply, and the row's cost over that floor.
 """
 
 from __future__ import annotations
@@ -29,11 +37,15 @@ import time
 from collections.abc import Callable, Hashable
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
+import torch
+from torch.utils.flop_counter import FlopCounterMode
 from tqdm import tqdm
 
 from kkl_bench import variants
 from kkl_bench.executors import thread_limit
+from kkl_bench.registry import estimators
 from kkl_bench.results import provenance
 from kkl_bench.scoring import timed_estimate, warm_up
 from kkl_bench.spec import RunSpec, make_fit_context
@@ -59,9 +71,28 @@ COLUMNS = [
     "git_commit",
     "run",
     "reference_us_per_trajectory_step",
+    "engine",
+    "reference_engine_us_per_trajectory_step",
+    "flops_per_trajectory_step",
+    "precision",
+    "peak_gflops",
+    "floor_us_per_trajectory_step",
+    "over_floor",
 ]
 """``run`` numbers the measurements merged into one file (1, 2, ...); the reference
-column is :data:`REFERENCE`'s cost on the same test set in the same run."""
+column is :data:`REFERENCE`'s cost on the same test set in the same run. ``engine`` is
+the engine timed (``compiled`` or ``reference`` for a model-based row with engines,
+``numpy`` for one without, ``torch`` for a network), and
+``reference_engine_us_per_trajectory_step`` the reference engine's cost beside a
+compiled one. ``floor = flops / peak`` at the measured ``peak_gflops`` in the row's
+``precision``; ``over_floor`` is the cost over it."""
+
+ARITHMETIC = COLUMNS[COLUMNS.index("engine") :]
+"""The columns measured since engines and floors were (issue 41)."""
+ENGINES = ("compiled", "reference")
+"""A model-based row with an ``engine`` hyperparameter is timed on both."""
+PEAK_SIZE = 1024
+"""The square matrix product whose best time gives the peak (:func:`peak_gflops`)."""
 
 
 def fastest_round_robin(
@@ -103,6 +134,57 @@ def fastest_round_robin(
     return best, counts
 
 
+def peak_gflops(precision: str, threads: int = 1, rounds: int = 5) -> float:
+    """This machine's peak, GFLOP/s: the best of ``rounds`` products of two
+    :data:`PEAK_SIZE` square matrices on ``threads`` threads (numpy's BLAS for
+    ``float64``, torch for ``float32``; ``2 N^3`` flops each)."""
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((2, PEAK_SIZE, PEAK_SIZE))
+    if precision == "float32":
+        a, b = torch.from_numpy(a).float(), torch.from_numpy(b).float()
+        multiply = torch.mm
+    elif precision == "float64":
+        multiply = np.matmul
+    else:
+        raise ValueError(f"precision {precision!r}; valid: float32, float64")
+    best = math.inf
+    with thread_limit(threads):
+        for _ in range(rounds + 1):  # the first is a warm-up
+            start = time.perf_counter()
+            multiply(a, b)
+            best = min(best, time.perf_counter() - start)
+    return 2 * PEAK_SIZE**3 / best / 1e9
+
+
+def counted_flops(estimator, data) -> tuple[float, str]:
+    """``(flops per trajectory-step, precision)`` of a fitted estimator on ``data``: its
+    own ``flops_per_step()`` (float64) if it has one, else what torch's flop counter
+    counts over one estimate (float32; NaN if it counts nothing: a numpy plugin)."""
+    declared = getattr(estimator, "flops_per_step", None)
+    if declared is not None:
+        return declared(), "float64"
+    with FlopCounterMode(display=False) as counter:
+        estimator.estimate(data.t.copy(), data.y.copy(), data.u.copy())
+    total = counter.get_total_flops()
+    return (total / data.y[..., 0].size if total else math.nan), "float32"
+
+
+def timed_variants(name: str) -> dict[str, str]:
+    """``{engine: variant}`` to time for row ``name``: both :data:`ENGINES` of an
+    estimator with an ``engine`` hyperparameter, the row itself otherwise (its engine
+    ``torch`` for a network, ``numpy`` for a filter without engines)."""
+    base, params = variants.parse(name)
+    estimator = estimators.get(base)
+    if "engine" in estimator.param_names():
+        return {
+            engine: variants.canonical(
+                f"{base}[{','.join(f'{k}={v!r}' for k, v in {**params, 'engine': engine}.items())}]"
+            )
+            for engine in ENGINES
+        }
+    return {"numpy" if getattr(estimator, "flops_per_step", None) else "torch": name}
+
+
 def measure(
     spec: RunSpec,
     out: Path,
@@ -124,49 +206,78 @@ def measure(
     stored = None if replace else read_costs(out)
     run = 1 if stored is None or stored.empty else int(stored["run"].max()) + 1
     timed = list(dict.fromkeys([*spec.estimators, REFERENCE]))
+    engines = {name: timed_variants(name) for name in timed}
     fitted, test_sets = {}, {}
     for name, system in tqdm(
         [(name, system) for name in timed for system in spec.systems],
         desc="loading fitted models",
         unit="model",
     ):
-        context = make_fit_context(spec, name, system, spec.seeds_for(name)[0])
-        fitted[name, system] = variants.build(name).fit(context)
+        for engine, variant in engines[name].items():
+            context = make_fit_context(spec, variant, system, spec.seeds_for(name)[0])
+            fitted[name, engine, system] = variants.build(variant).fit(context)
         for task in spec.tasks(system):
             test_sets.setdefault(task, make_test_set(task, spec.profile.n_test).data)
     calls = {
-        (name, task): functools.partial(timed_estimate, fitted[name, task.system], data)
+        (name, engine, task): functools.partial(
+            timed_estimate, fitted[name, engine, task.system], data
+        )
         for name in timed
+        for engine in engines[name]
         for task, data in test_sets.items()
     }
     with thread_limit(threads):
-        for name, task in calls:
-            warm_up(fitted[name, task.system], test_sets[task])
+        for name, engine, task in calls:
+            warm_up(fitted[name, engine, task.system], test_sets[task])
+    row_engine = {name: next(iter(engines[name])) for name in timed}  # compiled if any
+    arithmetic = {
+        (name, task): counted_flops(fitted[name, row_engine[name], task.system], data)
+        for name in tqdm(spec.estimators, desc="counting flops", unit="row")
+        for task, data in test_sets.items()
+    }
+    peaks = {
+        precision: peak_gflops(precision, threads)
+        for precision in sorted({precision for _, precision in arithmetic.values()})
+    }
 
     def rows(best: dict, counts: dict) -> pd.DataFrame:
-        return pd.DataFrame(
-            [
+        measured = []
+        for (name, engine, task), seconds in best.items():
+            if name not in spec.estimators or engine != row_engine[name]:
+                continue
+            data = test_sets[task]
+            flops, precision = arithmetic[name, task]
+            floor = flops / (peaks[precision] * 1e3)  # µs per trajectory-step
+            cost = _per_step(seconds, data)
+            reference_engine = best.get((name, "reference", task), math.nan)
+            measured.append(
                 {
                     "estimator": name,
                     "system": task.system,
                     "track": task.track,
                     "regime": task.regime,
-                    "trajectories": test_sets[task].y.shape[0],
-                    "us_per_trajectory_step": _per_step(seconds, test_sets[task]),
-                    "rounds": counts[name, task],
+                    "trajectories": data.y.shape[0],
+                    "us_per_trajectory_step": cost,
+                    "rounds": counts[name, engine, task],
                     "threads": threads,
                     "seed": spec.seeds_for(name)[0],
                     "git_commit": commit,
                     "run": run,
                     "reference_us_per_trajectory_step": _per_step(
-                        best.get((REFERENCE, task), math.nan), test_sets[task]
+                        best.get((REFERENCE, row_engine[REFERENCE], task), math.nan), data
                     ),
+                    "engine": getattr(fitted[name, engine, task.system], "engine_used", engine),
+                    "reference_engine_us_per_trajectory_step": (
+                        _per_step(reference_engine, data) if engine == "compiled" else math.nan
+                    ),
+                    "flops_per_trajectory_step": flops,
+                    "precision": precision,
+                    "peak_gflops": peaks[precision],
+                    "floor_us_per_trajectory_step": floor,
+                    "over_floor": cost / floor,
                 }
-                for (name, task), seconds in best.items()
-                if name in spec.estimators
-            ],
-            columns=COLUMNS,
-        )
+            )
+        return pd.DataFrame(measured, columns=COLUMNS)
 
     def save(best: dict, counts: dict) -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -189,19 +300,24 @@ def merge(stored: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
         return new.reset_index(drop=True)
     timed = pd.MultiIndex.from_frame(new[KEY])
     kept = stored[~pd.MultiIndex.from_frame(stored[KEY]).isin(timed)]
-    return pd.concat([kept, new], ignore_index=True)[COLUMNS]
+    return pd.concat([kept, new], ignore_index=True).reindex(columns=COLUMNS)
 
 
 def read_costs(path: Path) -> pd.DataFrame | None:
     """The rows :func:`measure` wrote to ``path``, or None if there is no such file.
 
     A file written before measurements were merged (no ``run`` column) was one run: its
-    rows get run 1 and the reference's cost from its own :data:`REFERENCE` rows. Raises
-    ``ValueError`` naming the file and the missing columns if it is not a measurement.
+    rows get run 1 and the reference's cost from its own :data:`REFERENCE` rows; one
+    written before engines and floors were measured (no :data:`ARITHMETIC` columns) has
+    them empty. Raises ``ValueError`` naming the file and the missing columns if it is not
+    a measurement.
     """
     if not path.exists():
         return None
     costs = pd.read_csv(path)
+    for column in ARITHMETIC:
+        if column not in costs.columns:
+            costs[column] = math.nan
     merged_since = ["run", "reference_us_per_trajectory_step"]
     needed = COLUMNS if "run" in costs.columns else [c for c in COLUMNS if c not in merged_since]
     missing = [column for column in needed if column not in costs.columns]

@@ -28,10 +28,11 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+import numba
 import numpy as np
 from scipy import special
 
-from kkl_bench.protocol import SIGMA_V
+from kkl_bench.protocol import SIGMA_V, compiled
 from kkl_bench.protocol.system import ReadThrough, System
 from kkl_bench.registry import Registry
 
@@ -77,6 +78,12 @@ class Sensor(ABC):
     def added_variance(self) -> float:
         return 0.0
 
+    def compiled(self) -> tuple | None:
+        """``(sense, sense_slope, s)``: the sensor as numba functions and its parameters
+        (:class:`kkl_bench.protocol.compiled.CompiledModel`), or None (the default) if it
+        has no compiled form; the filters then run their reference engine."""
+        return None
+
     def describe(self) -> str:
         params = ", ".join(f"{f.name} {getattr(self, f.name):g}" for f in dataclasses.fields(self))
         return f"{self.name} ({params})" if params else self.name
@@ -94,6 +101,9 @@ class Identity(Sensor):
 
     def slope(self, output):
         return np.ones_like(output)
+
+    def compiled(self):
+        return compiled.no_sensor, compiled.unit_slope, np.zeros(0)
 
 
 @sensors.register("saturating")
@@ -113,6 +123,21 @@ class Saturating(Sensor):
 
     def slope(self, output):
         return 1.0 - np.tanh(output / self.limit) ** 2
+
+    def compiled(self):
+        return _saturate, _saturation_slope, np.array([self.limit])
+
+
+@numba.njit(cache=True)
+def _saturate(h, s):
+    for j in range(h.shape[0]):
+        h[j] = s[0] * np.tanh(h[j] / s[0])
+
+
+@numba.njit(cache=True)
+def _saturation_slope(h, s, out):
+    for j in range(h.shape[0]):
+        out[j] = 1.0 - np.tanh(h[j] / s[0]) ** 2
 
 
 @sensors.register("quantized")
@@ -138,9 +163,18 @@ class Quantized(Sensor):
     def slope(self, output):
         return np.ones_like(output)
 
+    def compiled(self):
+        return _quantize, compiled.unit_slope, np.array([self.step])
+
     @property
     def added_variance(self) -> float:
         return self.step**2 / 12.0
+
+
+@numba.njit(cache=True)
+def _quantize(h, s):
+    for j in range(h.shape[0]):
+        h[j] = s[0] * np.rint(h[j] / s[0])  # numpy's round: half to even
 
 
 NOISE_LAWS = ("gaussian", "student-t", "outliers")
@@ -391,3 +425,10 @@ class SensedSystem(ReadThrough):
     def h_jacobian(self, x):
         slope = self.sensor.slope(self.model.h(x))
         return slope[..., :, None] * self.model.h_jacobian(x)
+
+    def compiled(self):
+        model, sensor = self.model.compiled(), self.sensor.compiled()
+        if model is None or sensor is None:
+            return None
+        sense, sense_slope, s = sensor
+        return dataclasses.replace(model, sense=sense, sense_slope=sense_slope, s=s)

@@ -12,8 +12,10 @@ enters with gain 0.3: with gain 1, 12.6 % of the paper's square-wave inputs
 escapes too; with 0.5, 0.1 %; with 0.3, none (``docs/protocol.md`` section 8).
 """
 
+import numba
 import numpy as np
 
+from kkl_bench.protocol.compiled import measured_states
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import systems
 
@@ -58,3 +60,32 @@ class Chua(MeasureOneState):
         jacobian[..., 1, 2] = 1.0
         jacobian[..., 2, 1] = -self.beta
         return jacobian
+
+    def compiled(self):
+        return measured_states(
+            [self.measured], self.g, [self.alpha, self.beta, self.m0, self.m1],
+            _drift, _drift_jacobian, drift_flops=14, jacobian_flops=3, jacobian_nonzeros=6,
+        )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _drift(x, p, out):
+    x1, x2, x3 = x[0], x[1], x[2]
+    alpha, beta, m0, m1 = p[0], p[1], p[2], p[3]
+    diode = m1 * x1 + 0.5 * (m0 - m1) * (abs(x1 + 1.0) - abs(x1 - 1.0))
+    out[0] = alpha * (x2 - x1 - diode)
+    out[1] = x1 - x2 + x3
+    out[2] = -beta * x2
+
+
+@numba.njit(cache=True)
+def _drift_jacobian(x, p, out):
+    alpha, beta, m0, m1 = p[0], p[1], p[2], p[3]
+    slope = m0 if abs(x[0]) < 1.0 else m1
+    out[:, :] = 0.0
+    out[0, 0] = -alpha * (1.0 + slope)
+    out[0, 1] = alpha
+    out[1, 0] = 1.0
+    out[1, 1] = -1.0
+    out[1, 2] = 1.0
+    out[2, 1] = -beta

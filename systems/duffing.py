@@ -1,7 +1,9 @@
 """Reverse Duffing oscillator: ``dx1 = a x2^3``, ``dx2 = -x1 + u``, ``y = x1`` (``a = 1``)."""
 
+import numba
 import numpy as np
 
+from kkl_bench.protocol.compiled import measured_states
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import systems
 
@@ -32,3 +34,24 @@ class ReverseDuffing(MeasureOneState):
         jacobian[..., 0, 1] = 3.0 * self.a * x2 * x2
         jacobian[..., 1, 0] = -1.0
         return jacobian
+
+    def compiled(self):
+        return measured_states(
+            [self.measured], self.g, [self.a], _drift, _drift_jacobian,
+            drift_flops=4, jacobian_flops=3, jacobian_nonzeros=2,
+        )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _drift(x, p, out):
+    x2 = x[1]
+    out[0] = p[0] * x2 * x2 * x2
+    out[1] = -x[0]
+
+
+@numba.njit(cache=True)
+def _drift_jacobian(x, p, out):
+    out[0, 0] = 0.0
+    out[0, 1] = 3.0 * p[0] * x[1] * x[1]
+    out[1, 0] = -1.0
+    out[1, 1] = 0.0

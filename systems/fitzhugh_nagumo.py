@@ -11,8 +11,10 @@ One protocol second is ``c = 5`` model time units (a choice of unit, not of
 dynamics), so a 50 s horizon holds about six spikes instead of 1.3.
 """
 
+import numba
 import numpy as np
 
+from kkl_bench.protocol.compiled import measured_states
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import systems
 
@@ -55,3 +57,28 @@ class FitzHughNagumo(MeasureOneState):
         jacobian[..., 1, 0] = c / self.tau
         jacobian[..., 1, 1] = -c * self.b / self.tau
         return jacobian
+
+    def compiled(self):
+        p = [self.a, self.b, self.tau, self.bias_current, self.time_scale]
+        return measured_states(
+            [self.measured], self.g, p, _drift, _drift_jacobian,
+            drift_flops=12, jacobian_flops=6, jacobian_nonzeros=4,
+        )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _drift(x, p, out):
+    v, w = x[0], x[1]
+    a, b, tau, bias_current, c = p[0], p[1], p[2], p[3], p[4]
+    out[0] = c * (v - v * v * v / 3.0 - w + bias_current)
+    out[1] = c * (v + a - b * w) / tau
+
+
+@numba.njit(cache=True)
+def _drift_jacobian(x, p, out):
+    v = x[0]
+    b, tau, c = p[1], p[2], p[4]
+    out[0, 0] = c * (1.0 - v * v)
+    out[0, 1] = -c
+    out[1, 0] = c / tau
+    out[1, 1] = -c * b / tau

@@ -1,7 +1,9 @@
 """Lorenz system: ``dx1 = p (x2 - x1) + u``, ``dx2 = x1 (q - x3) - x2``, ``dx3 = x1 x2 - r x3``, ``y = x2``."""
 
+import numba
 import numpy as np
 
+from kkl_bench.protocol.compiled import measured_states
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import systems
 
@@ -37,3 +39,31 @@ class Lorenz(MeasureOneState):
         jacobian[..., 2, 1] = x1
         jacobian[..., 2, 2] = -self.r
         return jacobian
+
+    def compiled(self):
+        return measured_states(
+            [self.measured], self.g, [self.p, self.q, self.r], _drift, _drift_jacobian,
+            drift_flops=8, jacobian_flops=2, jacobian_nonzeros=8,
+        )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _drift(x, p, out):
+    x1, x2, x3 = x[0], x[1], x[2]
+    out[0] = p[0] * (x2 - x1)
+    out[1] = x1 * (p[1] - x3) - x2
+    out[2] = x1 * x2 - p[2] * x3
+
+
+@numba.njit(cache=True)
+def _drift_jacobian(x, p, out):
+    x1, x2, x3 = x[0], x[1], x[2]
+    out[0, 0] = -p[0]
+    out[0, 1] = p[0]
+    out[0, 2] = 0.0
+    out[1, 0] = p[1] - x3
+    out[1, 1] = -1.0
+    out[1, 2] = -x1
+    out[2, 0] = x2
+    out[2, 1] = x1
+    out[2, 2] = -p[2]

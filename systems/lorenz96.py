@@ -16,8 +16,10 @@ the even sites), which a local observer can use. The dimension is part of the na
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
+from kkl_bench.protocol.compiled import measured_states
 from kkl_bench.protocol.system import Ring, System
 from kkl_bench.registry import systems
 
@@ -64,6 +66,33 @@ class Lorenz96(System):
         jacobian = np.zeros((*x.shape[:-1], self.n_y, self.n_x))
         jacobian[..., np.arange(self.n_y), self.measured] = 1.0
         return jacobian
+
+    def compiled(self):
+        n = self.n_x  # each row of df/dx has 4 nonzeros: the diagonal and 3 neighbours
+        return measured_states(
+            self.measured, self.g, [self.forcing], _drift, _drift_jacobian,
+            drift_flops=4 * n, jacobian_flops=2 * n, jacobian_nonzeros=4 * n,
+        )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _drift(x, p, out):
+    n = x.shape[0]
+    for i in range(n):
+        advection = (x[(i + 1) % n] - x[(i - 2) % n]) * x[(i - 1) % n]
+        out[i] = advection - x[i] + p[0]
+
+
+@numba.njit(cache=True)
+def _drift_jacobian(x, p, out):
+    n = x.shape[0]
+    out[:, :] = 0.0
+    for i in range(n):
+        following, before, previous = (i + 1) % n, (i - 2) % n, (i - 1) % n
+        out[i, i] = -1.0
+        out[i, following] = x[previous]
+        out[i, before] = -x[previous]
+        out[i, previous] = x[following] - x[before]
 
 
 def lorenz96(n: int) -> type[Lorenz96]:

@@ -1,7 +1,9 @@
 """Rossler system: ``dx1 = -x2 - x3 + u``, ``dx2 = x1 + a x2``, ``dx3 = b + x3 (x1 - c)``, ``y = x2``."""
 
+import numba
 import numpy as np
 
+from kkl_bench.protocol.compiled import measured_states
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import systems
 
@@ -48,3 +50,33 @@ class Rossler(MeasureOneState):
         jacobian[..., 2, 0] = x3
         jacobian[..., 2, 2] = x1 - self.c
         return jacobian
+
+    def compiled(self):
+        return measured_states(
+            [self.measured], self.g, [self.a, self.b, self.c], _drift, _drift_jacobian,
+            constrain=_reflect, drift_flops=7, jacobian_flops=1, jacobian_nonzeros=6,
+        )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _drift(x, p, out):
+    x1, x2, x3 = x[0], x[1], x[2]
+    out[0] = -x2 - x3
+    out[1] = x1 + p[0] * x2
+    out[2] = p[1] + x3 * (x1 - p[2])
+
+
+@numba.njit(cache=True)
+def _drift_jacobian(x, p, out):
+    out[:, :] = 0.0
+    out[0, 1] = -1.0
+    out[0, 2] = -1.0
+    out[1, 0] = 1.0
+    out[1, 1] = p[0]
+    out[2, 0] = x[2]
+    out[2, 2] = x[0] - p[2]
+
+
+@numba.njit(cache=True)
+def _reflect(x, p):
+    x[2] = abs(x[2])

@@ -1,7 +1,9 @@
 """Van der Pol oscillator: ``dx1 = x2``, ``dx2 = mu (1 - x1^2) x2 - x1 + u``, ``y = x1``."""
 
+import numba
 import numpy as np
 
+from kkl_bench.protocol.compiled import measured_states
 from kkl_bench.protocol.system import MeasureOneState, stack
 from kkl_bench.registry import systems
 
@@ -32,3 +34,25 @@ class VanDerPol(MeasureOneState):
         jacobian[..., 1, 0] = -2.0 * self.mu * x1 * x2 - 1.0
         jacobian[..., 1, 1] = self.mu * (1.0 - x1 * x1)
         return jacobian
+
+    def compiled(self):
+        return measured_states(
+            [self.measured], self.g, [self.mu], _drift, _drift_jacobian,
+            drift_flops=5, jacobian_flops=7, jacobian_nonzeros=3,
+        )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _drift(x, p, out):
+    x1, x2 = x[0], x[1]
+    out[0] = x2
+    out[1] = p[0] * (1.0 - x1 * x1) * x2 - x1
+
+
+@numba.njit(cache=True)
+def _drift_jacobian(x, p, out):
+    x1, x2 = x[0], x[1]
+    out[0, 0] = 0.0
+    out[0, 1] = 1.0
+    out[1, 0] = -2.0 * p[0] * x1 * x2 - 1.0
+    out[1, 1] = p[0] * (1.0 - x1 * x1)

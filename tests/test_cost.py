@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -174,3 +175,45 @@ def test_cost_command_merges_its_rows_and_times_the_ekf_beside_them(tmp_path, ca
     with pytest.raises(ValueError, match=r"not-costs\.csv is not a `kkl-bench cost` measurement"):
         cost.read_costs(tmp_path / "not-costs.csv")
     assert cost.read_costs(tmp_path / "missing.csv") is None
+
+
+def test_flops_are_counted_by_torch_for_a_network_and_declared_by_a_filter():
+    import torch
+
+    from kkl_bench.protocol.simulate import Trajectories
+
+    class Linear:  # a network row: one (n_y -> n_x = 3) linear map per sample
+        def estimate(self, t, y, u):
+            weights = torch.ones(1, 3)
+            return (torch.from_numpy(y).float() @ weights).numpy()
+
+    steps = np.arange(7) * 0.05
+    data = Trajectories(steps, np.zeros((2, 7, 1)), np.zeros((2, 7, 3)), np.ones((2, 7, 1)))
+    assert cost.counted_flops(Linear(), data) == (2 * 1 * 3, "float32")
+
+    class Declared(Linear):
+        def flops_per_step(self):
+            return 123.0
+
+    assert cost.counted_flops(Declared(), data) == (123.0, "float64")
+    with pytest.raises(ValueError, match=r"float16.*float32, float64"):
+        cost.peak_gflops("float16")
+
+
+@pytest.mark.slow
+def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_and_floor(tmp_path):
+    out = tmp_path / "board"
+    arguments = ["cost", "--system", "vdp", "--profile", "quick", "--rounds", "1"]
+    assert main([*arguments, "--estimator", "ukf", "autonomous_kkl", "--out", str(out)]) == 0
+    costs = cost.read_costs(out / cost.COST_FILE).set_index("estimator")
+    ukf, kkl = costs.loc["ukf"], costs.loc["autonomous_kkl"]
+    assert (ukf["engine"] == "compiled").all() and (ukf["precision"] == "float64").all()
+    assert (ukf["reference_engine_us_per_trajectory_step"] > ukf["us_per_trajectory_step"]).all()
+    assert (kkl["engine"] == "torch").all() and (kkl["precision"] == "float32").all()
+    assert kkl["reference_engine_us_per_trajectory_step"].isna().all()
+    for row in (ukf, kkl):
+        assert (row["flops_per_trajectory_step"] > 0).all() and (row["peak_gflops"] > 0).all()
+        floor = row["flops_per_trajectory_step"] / (row["peak_gflops"] * 1e3)
+        np.testing.assert_allclose(row["floor_us_per_trajectory_step"], floor, rtol=1e-5)
+        ratio = row["us_per_trajectory_step"] / floor  # the file keeps 6 digits
+        np.testing.assert_allclose(row["over_floor"], ratio, rtol=1e-5)

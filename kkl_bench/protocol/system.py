@@ -11,9 +11,12 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from kkl_bench.protocol.compiled import CompiledModel
 
 
 def stack(components: list[Any]) -> Any:
@@ -120,6 +123,12 @@ class System(ABC):
         """The model's named parameters (for provenance)."""
         return {}
 
+    def compiled(self) -> CompiledModel | None:
+        """The model as numba functions (:mod:`kkl_bench.protocol.compiled`), what the
+        filters' compiled engine runs; None (the default) if the system offers none, and
+        the filters then run their reference engine."""
+        return None
+
     def with_sites(self, sites: int) -> System:
         """The same system on a ring of ``sites`` sites (a ring observer trained at one
         size is applied at another); only a ring system implements it."""
@@ -156,6 +165,10 @@ class ReadThrough(System, ABC):
 
     def params(self):
         return self.model.params()
+
+    def compiled(self):
+        """None: a subclass that reads the output its own way says how to compile it."""
+        return None
 
     def __getattr__(self, name: str):  # anything else the model declares
         if "model" not in self.__dict__:  # being copied or unpickled: not set up yet

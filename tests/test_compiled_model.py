@@ -1,0 +1,72 @@
+"""Every built-in system's compiled model computes what its numpy model computes."""
+
+import numpy as np
+import pytest
+
+from kkl_bench.measurement import MeasurementModel, Quantized, Saturating
+from kkl_bench.protocol import compiled
+from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
+from kkl_bench.registry import systems
+
+DT = 0.05
+
+
+def states(system, count=16, seed=0):
+    """``(count, n_x)`` states from a box three times the x0 box."""
+    rng = np.random.default_rng(seed)
+    centre, half = (system.x0_high + system.x0_low) / 2, (system.x0_high - system.x0_low) * 1.5
+    return centre + half * rng.uniform(-1, 1, (count, system.n_x))
+
+
+@pytest.mark.parametrize("name", systems.names())
+def test_compiled_drift_output_and_rk4_step_equal_the_numpy_model(name):
+    system = systems.get(name)()
+    model = system.compiled()
+    assert model is not None, f"{name} has no compiled model"
+    n, n_y = system.n_x, system.n_y
+    assert model.n_y == n_y
+    work, jacobian_work = np.empty((5, n)), np.empty((5, n, n))
+    for x in states(system):
+        drift, jacobian = np.empty(n), np.full((n, n), np.nan)
+        model.drift(x, model.p, drift)
+        model.drift_jacobian(x, model.p, jacobian)
+        np.testing.assert_allclose(drift, system.f(x), rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(jacobian, system.f_jacobian(x), rtol=1e-14, atol=1e-14)
+        assert np.count_nonzero(jacobian) <= model.jacobian_nonzeros
+        output, output_jacobian = np.empty(n_y), np.full((n_y, n), np.nan)
+        model.output(x, model.q, output)
+        model.output_jacobian(x, model.q, output_jacobian)
+        np.testing.assert_array_equal(output, system.h(x))
+        np.testing.assert_array_equal(output_jacobian, system.h_jacobian(x))
+        step, step_jacobian = np.empty(n), np.empty((n, n))
+        compiled.rk4_step(model.drift, model.p, model.g, x, 0.7, DT, step, work)
+        compiled.rk4_step_jacobian(
+            model.drift, model.drift_jacobian, model.p, model.g, x, 0.7, DT,
+            step_jacobian, work, jacobian_work,
+        )  # fmt: skip
+        np.testing.assert_allclose(step, rk4_step(system, x, np.array(0.7), DT), rtol=1e-14)
+        np.testing.assert_allclose(
+            step_jacobian, rk4_step_jacobian(system, x, np.array(0.7), DT), rtol=1e-13, atol=1e-15
+        )
+
+
+@pytest.mark.parametrize("sensor", [Quantized(step=0.5), Saturating(limit=0.8)])
+def test_a_sensed_system_compiles_its_sensor(sensor):
+    system = MeasurementModel(sensor=sensor).system(systems.get("vdp")())
+    model = system.compiled()
+    for x in states(system):
+        output, slope = np.empty(1), np.empty(1)
+        model.output(x, model.q, output)
+        model.sense_slope(output, model.s, slope)
+        model.sense(output, model.s)
+        np.testing.assert_allclose(output, system.h(x), rtol=1e-15)
+        np.testing.assert_allclose(
+            slope[:, None] * [[1.0, 0.0]], system.h_jacobian(x), rtol=1e-12, atol=1e-15
+        )
+
+
+def test_the_rossler_constraint_reflects_x3():
+    model = systems.get("rossler")().compiled()
+    x = np.array([1.0, 2.0, -0.25])
+    model.constrain(x, model.p)
+    np.testing.assert_array_equal(x, [1.0, 2.0, 0.25])

@@ -1,0 +1,114 @@
+"""The compiled filter engines give the reference (filterpy) engine's estimates.
+
+The two engines must agree to a relative 1e-9 on every trajectory of every quick cell of
+the paper and hard tracks (sampled standard cells in the slow test), except where no two
+implementations of the filter can: a trajectory on which the reference engine itself
+moves by more than that when every measurement moves by one unit in the last place (a
+filter that does not contract its error there, on a chaotic system between sparse
+samples or under outliers, amplifies every rounding; protocol 6.3). None is on the
+paper track; on the hard track they are counted (printed with ``-s``).
+"""
+
+import numpy as np
+import pytest
+
+from kkl_bench import variants
+from kkl_bench.protocol.system import ReadThrough
+from kkl_bench.spec import RunSpec, fit_context_for_row
+from kkl_bench.task import get_profile, make_test_set
+
+FILTERS = ("ekf", "ukf")
+RELATIVE = 1e-9
+
+
+def spec_for(tracks, profile="quick", tmp_path=None):
+    return RunSpec(
+        estimators=FILTERS,
+        systems=("duffing", "vdp", "rossler", "lorenz"),
+        regimes=None,
+        tracks=tracks,
+        profile=get_profile(profile),
+        seeds=(0,),
+        results_dir=tmp_path,
+        cache_dir=tmp_path,
+    )
+
+
+def estimates(spec, name, task, engine, n_test, nudge=False):
+    """``(batch, steps, n_x)`` estimates of the ``engine`` of ``name`` on ``task``'s test
+    set; ``nudge`` moves every measurement up by one unit in the last place."""
+    row = variants.canonical(f"{name}[engine={engine!r}]")
+    context = fit_context_for_row(spec, row, task.system, [task], seed=0)
+    estimator = variants.build(row).fit(context)
+    assert estimator.engine_used == engine
+    data = make_test_set(task, n_test).data
+    y = np.nextafter(data.y, np.inf) if nudge else data.y
+    return estimator.estimate(data.t, y, data.u)
+
+
+def relative_difference(first, second):
+    """``(batch,)`` the largest difference of two estimates over each trajectory, relative to
+    the trajectory's largest estimate; infinite where they are not NaN at the same places."""
+    scale = np.nanmax(np.abs(first), axis=(1, 2))
+    difference = np.nanmax(np.abs(second - first), axis=(1, 2), initial=0.0) / scale
+    return np.where((np.isnan(first) != np.isnan(second)).any(axis=(1, 2)), np.inf, difference)
+
+
+def compare_engines(spec, name, tasks, n_test):
+    """The number of trajectories compared and of those exempted as rounding-sensitive;
+    fails on any other whose engines differ by more than a relative 1e-9."""
+    compared = sensitive = 0
+    for task in tasks:
+        reference = estimates(spec, name, task, "reference", n_test)
+        compiled = estimates(spec, name, task, "compiled", n_test)
+        differs = relative_difference(reference, compiled) > RELATIVE
+        if differs.any():
+            nudged = estimates(spec, name, task, "reference", n_test, nudge=True)
+            exempt = relative_difference(reference, nudged) > RELATIVE
+            unexplained = np.flatnonzero(differs & ~exempt)
+            assert not unexplained.size, f"{name} on {task}: trajectories {unexplained} differ"
+            sensitive += int(exempt.sum())
+        compared += reference.shape[0]
+    return compared, sensitive
+
+
+@pytest.mark.parametrize("name", FILTERS)
+@pytest.mark.parametrize("track", ["paper", pytest.param("hard", marks=pytest.mark.slow)])
+def test_the_compiled_engine_equals_filterpy_on_every_quick_cell(name, track, tmp_path):
+    spec = spec_for((track,), tmp_path=tmp_path)
+    compared, sensitive = compare_engines(spec, name, spec.tasks(), spec.profile.n_test)
+    print(f"{name} on {track}: {sensitive} of {compared} trajectories rounding-sensitive")
+    if track == "paper":
+        assert sensitive == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", FILTERS)
+def test_the_compiled_engine_equals_filterpy_on_sampled_standard_cells(name, tmp_path):
+    spec = spec_for(("paper", "hard"), profile="standard", tmp_path=tmp_path)
+    tasks = spec.tasks()
+    sample = [tasks[i] for i in np.random.default_rng(41).choice(len(tasks), 4, replace=False)]
+    compared, sensitive = compare_engines(spec, name, sample, spec.profile.n_test)
+    print(f"{name}: {sensitive} of {compared} trajectories rounding-sensitive")
+
+
+def test_a_system_without_a_compiled_model_runs_the_reference_engine(tmp_path):
+    class Uncompiled(ReadThrough):  # a plugin's system: no compiled form
+        def h(self, x):
+            return self.model.h(x)
+
+        def h_jacobian(self, x):
+            return self.model.h_jacobian(x)
+
+    spec = spec_for(("paper",), tmp_path=tmp_path)
+    task = spec.tasks("vdp")[0]
+    context = fit_context_for_row(spec, "ekf", "vdp", [task], seed=0)
+    plugin = context.__class__(**{**context.__dict__, "system": Uncompiled(context.system)})
+    estimator = variants.build("ekf").fit(plugin)
+    assert estimator.engine_used == "reference"
+    assert estimator.fit_report()["engine"] == "reference"
+
+
+def test_an_unknown_engine_is_refused_with_the_valid_ones():
+    with pytest.raises(ValueError, match=r"engine='numba'.*compiled, reference"):
+        variants.build("ukf[engine='numba']")
