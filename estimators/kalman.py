@@ -13,8 +13,8 @@ Two engines run the same filter (``engine=`` of both estimators): ``"reference"`
 default, what the published accuracy cells come from), filterpy's filter advanced one
 trajectory and one sample at a time in Python, and ``"compiled"``, the same arithmetic
 in numba kernels (:mod:`kkl_bench.estimators.kalman_kernels`) over the system's compiled
-model, 100 to 300 times faster: what ``kkl-bench cost`` times as the row's online cost
-(protocol 6.3). A system without a compiled model
+model: what ``kkl-bench cost`` times as the row's online cost, with the reference beside
+it (protocol 6.3). A system without a compiled model
 (:meth:`~kkl_bench.protocol.system.System.compiled` is None: a plugin's) runs the
 reference engine; the fit report names the engine that runs.
 """

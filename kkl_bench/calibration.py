@@ -35,10 +35,12 @@ from __future__ import annotations
 import dataclasses
 import inspect
 
+import numba
 import numpy as np
 from scipy.optimize import least_squares
 
 from kkl_bench.estimator import FitContext
+from kkl_bench.protocol import compiled
 from kkl_bench.protocol.simulate import Trajectories, rk4_step
 from kkl_bench.protocol.system import ReadThrough, System
 
@@ -64,6 +66,26 @@ class CalibratedSystem(ReadThrough):
 
     def params(self):
         return {**self.model.params(), "sensor_gain": self.gain, "sensor_offset": self.offset}
+
+    def compiled(self):
+        """The model's compiled form read by the affine sensor (None if the model has no
+        compiled form, or already reads through a sensor of its own)."""
+        model = self.model.compiled()
+        if model is None or model.sense is not compiled.no_sensor:
+            return None
+        s = np.array([self.gain, self.offset])
+        return dataclasses.replace(model, sense=_affine, sense_slope=_affine_slope, s=s)
+
+
+@numba.njit(cache=True)
+def _affine(h, s):
+    for j in range(h.shape[0]):
+        h[j] = s[0] * h[j] + s[1]
+
+
+@numba.njit(cache=True)
+def _affine_slope(h, s, out):
+    out[:] = s[0]
 
 
 def calibrate(

@@ -318,6 +318,8 @@ def read_costs(path: Path) -> pd.DataFrame | None:
     for column in ARITHMETIC:
         if column not in costs.columns:
             costs[column] = math.nan
+    for column in ("engine", "precision"):  # text, empty in rows measured before them
+        costs[column] = costs[column].astype(object)
     merged_since = ["run", "reference_us_per_trajectory_step"]
     needed = COLUMNS if "run" in costs.columns else [c for c in COLUMNS if c not in merged_since]
     missing = [column for column in needed if column not in costs.columns]

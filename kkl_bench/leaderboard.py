@@ -308,7 +308,9 @@ def measured_cost_table(costs: pd.DataFrame) -> Table:
     trajectory-step on each system (mean over its tasks), the largest over all cells, and
     how many times cheaper than the EKF it is on average: per system, the mean of the
     EKF's costs timed in each row's own run over the mean of the row's, averaged over the
-    systems."""
+    systems. Where the measurement has them: the engine timed, the reference engine's cost
+    beside a compiled one, the flops of a trajectory-step and the cost over the floor they
+    imply (means over the row's cells)."""
     means = costs.groupby(["estimator", "system"])[
         ["us_per_trajectory_step", "reference_us_per_trajectory_step"]
     ].mean()
@@ -320,6 +322,14 @@ def measured_cost_table(costs: pd.DataFrame) -> Table:
         "system"
     )
     table["EKF / this (mean over systems)"] = ratios[systems].mean(axis=1)
+    if "engine" in costs and costs["engine"].notna().any():
+        rows = costs.groupby("estimator")
+        table["engine"] = rows["engine"].agg(lambda e: ", ".join(sorted(set(e.dropna()))))
+        table["reference engine (µs, mean)"] = rows[
+            "reference_engine_us_per_trajectory_step"
+        ].mean()
+        table["flops / step (mean)"] = rows["flops_per_trajectory_step"].mean()
+        table["cost / floor (mean)"] = rows["over_floor"].mean()
     frame = table.reset_index()
     headers = {"estimator": "Estimator (µs / trajectory-step)"}
     return Table(frame, headers | {c: c for c in table.columns}, id="measured-costs")

@@ -57,7 +57,7 @@ def test_filters_fit_on_the_calibrated_model_only_when_given_logged_data():
 
     report = variants.build("ekf").fit(logged).fit_report()
     assert report["calibration"]["mu"] == pytest.approx(3.75, rel=0.005)
-    assert variants.build("ekf").fit(nominal).fit_report() == {}
+    assert "calibration" not in variants.build("ekf").fit(nominal).fit_report()
 
 
 def test_kkl_observers_train_on_the_calibrated_model_given_logged_data(tmp_path):

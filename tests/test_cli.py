@@ -202,6 +202,7 @@ def test_variant_names_are_canonical_and_stored_under_their_own_name(tmp_path, c
         "alpha": 0.3,
         "beta": 2.0,
         "kappa": 1.0,
+        "engine": "reference",
     }
     assert main(["check", "ukf[alpha=0.3]", "--system", "vdp"]) == 0
     assert "FAIL" not in capsys.readouterr().out

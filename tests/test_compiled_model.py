@@ -70,3 +70,18 @@ def test_the_rossler_constraint_reflects_x3():
     x = np.array([1.0, 2.0, -0.25])
     model.constrain(x, model.p)
     np.testing.assert_array_equal(x, [1.0, 2.0, 0.25])
+
+
+def test_a_calibrated_system_compiles_its_affine_sensor():
+    from kkl_bench.calibration import CalibratedSystem
+
+    system = CalibratedSystem(systems.get("lorenz")(p=11.0), gain=1.05, offset=0.02)
+    model = system.compiled()
+    np.testing.assert_array_equal(model.p, [11.0, 28.0, 8.0 / 3.0])
+    for x in states(system):
+        output, slope = np.empty(1), np.empty(1)
+        model.output(x, model.q, output)
+        model.sense_slope(output, model.s, slope)
+        model.sense(output, model.s)
+        np.testing.assert_array_equal(output, system.h(x))
+        np.testing.assert_array_equal(slope[:, None] * [[0.0, 1.0, 0.0]], system.h_jacobian(x))

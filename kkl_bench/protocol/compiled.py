@@ -182,57 +182,52 @@ def rk4_step(drift, p, g, x, u, dt, out, work):
 
 
 @numba.njit(cache=True)
-def _chain(jacobian, scale, previous, out):
-    """``out = jacobian @ (I + scale previous)`` (one stage of the chain rule)."""
-    n = jacobian.shape[0]
+def _chain(stages, target, previous, scale):
+    """``stages[target] = stages[4] @ (I + scale stages[previous])``: one stage of the chain
+    rule, on slices of one ``(5, n, n)`` array (indexing it whole keeps the loop free of
+    array views)."""
+    n = stages.shape[1]
     for i in range(n):
         for j in range(n):
             total = 0.0
             for m in range(n):
-                factor = scale * previous[m, j]
+                factor = scale * stages[previous, m, j]
                 if m == j:
                     factor = 1.0 + factor
-                total += jacobian[i, m] * factor
-            out[i, j] = total
+                total += stages[4, i, m] * factor
+            stages[target, i, j] = total
 
 
 @numba.njit(cache=True)
-def rk4_step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, jacobian_work):
+def rk4_step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stages):
     """``out (n_x, n_x)`` = the Jacobian of :func:`rk4_step` at ``x`` by the chain rule
-    (:func:`simulate.rk4_step_jacobian`). ``work: (5, n_x)``, ``jacobian_work: (5, n_x,
-    n_x)`` scratch."""
+    (:func:`simulate.rk4_step_jacobian`). ``work: (5, n_x)``, ``stages: (5, n_x, n_x)``
+    scratch (``dk1..dk4`` and the Jacobian at a stage point)."""
     n = x.shape[0]
     k, stage = work[0], work[4]
-    dk1, dk2, dk3, dk4, jac = (
-        jacobian_work[0],
-        jacobian_work[1],
-        jacobian_work[2],
-        jacobian_work[3],
-        jacobian_work[4],
-    )
     half = 0.5 * dt
     vector_field(drift, p, g, x, u, k)
-    drift_jacobian(x, p, dk1)
+    drift_jacobian(x, p, stages[0])
     for i in range(n):
         stage[i] = x[i] + half * k[i]
     vector_field(drift, p, g, stage, u, k)
-    drift_jacobian(stage, p, jac)
-    _chain(jac, half, dk1, dk2)
+    drift_jacobian(stage, p, stages[4])
+    _chain(stages, 1, 0, half)
     for i in range(n):
         stage[i] = x[i] + half * k[i]
     vector_field(drift, p, g, stage, u, k)
-    drift_jacobian(stage, p, jac)
-    _chain(jac, half, dk2, dk3)
+    drift_jacobian(stage, p, stages[4])
+    _chain(stages, 2, 1, half)
     for i in range(n):
         stage[i] = x[i] + dt * k[i]
-    drift_jacobian(stage, p, jac)
-    _chain(jac, dt, dk3, dk4)
+    drift_jacobian(stage, p, stages[4])
+    _chain(stages, 3, 2, dt)
     sixth = dt / 6.0
     for i in range(n):
         for j in range(n):
             identity = 1.0 if i == j else 0.0
             out[i, j] = identity + sixth * (
-                dk1[i, j] + 2.0 * dk2[i, j] + 2.0 * dk3[i, j] + dk4[i, j]
+                stages[0, i, j] + 2.0 * stages[1, i, j] + 2.0 * stages[2, i, j] + stages[3, i, j]
             )
 
 

@@ -311,13 +311,44 @@ def cost_source(costs: pd.DataFrame | None) -> str:
     )
 
 
+def cost_finding(costs: pd.DataFrame) -> str:
+    """What the measurement says of cost, read from it: each engine's rows over the EKF of
+    their own run (the range of the per-row means over systems, with the rows at its
+    ends), and how far each engine's rows are from their arithmetic floor. Empty for a
+    measurement without engines (before protocol 6.3's floors)."""
+    if "engine" not in costs or costs["engine"].isna().all():
+        return ""
+    rows = costs[(costs["estimator"] != "ekf") & costs["engine"].notna()].copy()
+    rows["over_ekf"] = rows["us_per_trajectory_step"] / rows["reference_us_per_trajectory_step"]
+    means = {"over_ekf": ("over_ekf", "mean"), "over_floor": ("over_floor", "mean")}
+    per_system = rows.groupby(["estimator", "system", "engine"]).agg(**means).reset_index()
+    per_row = per_system.groupby(["estimator", "engine"]).agg(**means).reset_index("engine")
+    ekf = costs[costs["estimator"] == "ekf"]
+    ekf_engine = ", ".join(sorted(set(ekf["engine"].dropna()))) or "compiled"
+    parts = [f"Against the EKF timed beside them ({ekf_engine} engine)"]
+    for engine, group in per_row.groupby("engine"):
+        cheapest, dearest = group["over_ekf"].idxmin(), group["over_ekf"].idxmax()
+        floor = group["over_floor"]
+        parts.append(
+            f"the {len(group)} row(s) timed on the {engine} engine cost "
+            f"{group['over_ekf'].min():.3g} (`{cheapest}`) to {group['over_ekf'].max():.3g} "
+            f"(`{dearest}`) times the EKF's per trajectory-step (mean over systems) and run "
+            f"at {floor.min():.3g} to {floor.max():.3g} times their arithmetic floor"
+        )
+    ekf_floor = ekf["over_floor"].mean() if "over_floor" in ekf else float("nan")
+    return "; ".join(parts) + f"; the EKF itself runs at {ekf_floor:.3g} times its floor. "
+
+
 def cost_section(board: Board) -> Section:
     blocks: list = [Text(COST_TEXT + cost_source(board.costs)), cost_table(board.summary)]
     if board.costs is not None and not board.costs.empty:
         blocks += [
             Text(
                 "Online cost from the same measurement, per system (mean over regimes), the\n"
-                "largest cell, and the EKF's cost over each row's:"
+                "largest cell, and the EKF's cost over each row's. "
+                + cost_finding(board.costs)
+                + "A row's floor is its flops per trajectory-step at this machine's peak in "
+                "its precision, measured in the same run (protocol 6.3):"
             ),
             measured_cost_table(board.costs),
         ]
