@@ -22,10 +22,10 @@ place of the cells' own times.
 A row's cost is its algorithm's, not its Python loop's (protocol 6.3): a model-based row
 with engines (``engine=`` of ``ekf`` and ``ukf``) is timed on its compiled engine, and
 its reference engine (filterpy) is timed beside it in the same run. Every row also
-carries its arithmetic: the flops of one trajectory-step (the estimator's own count,
-``flops_per_step()``, for the filters; torch's flop counter over the timed estimate for
-the networks), this machine's peak in the row's precision measured in the same run
-(:func:`peak_gflops`), the floor they imply, and the row's cost over that floor.
+carries its arithmetic where it is counted: the flops of one trajectory-step (the
+estimator's own count, ``flops_per_step()``; the filters have one, the networks not yet:
+:func:`counted_flops`), this machine's peak in the row's precision measured in the same
+run (:func:`peak_gflops`), the floor they imply, and the row's cost over that floor.
 """
 
 from __future__ import annotations
@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from torch.utils.flop_counter import FlopCounterMode
 from tqdm import tqdm
 
 from kkl_bench import variants
@@ -157,16 +156,14 @@ def peak_gflops(precision: str, threads: int = 1, rounds: int = 5) -> float:
 
 
 def counted_flops(estimator, data) -> tuple[float, str]:
-    """``(flops per trajectory-step, precision)`` of a fitted estimator on ``data``: its
-    own ``flops_per_step()`` (float64) if it has one, else what torch's flop counter
-    counts over one estimate (float32; NaN if it counts nothing: a numpy plugin)."""
+    """``(flops per trajectory-step, precision)`` of a fitted estimator: its own
+    ``flops_per_step()`` (the filters count theirs, in float64), else NaN in float32 (a
+    network: torch's flop counter misses the LSTM and the injection observer's forced
+    path, so the networks' counts wait for their layer sizes; protocol 6.3)."""
     declared = getattr(estimator, "flops_per_step", None)
     if declared is not None:
         return declared(), "float64"
-    with FlopCounterMode(display=False) as counter:
-        estimator.estimate(data.t.copy(), data.y.copy(), data.u.copy())
-    total = counter.get_total_flops()
-    return (total / data.y[..., 0].size if total else math.nan), "float32"
+    return math.nan, "float32"
 
 
 def timed_variants(name: str) -> dict[str, str]:

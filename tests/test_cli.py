@@ -277,3 +277,18 @@ def test_scaling_render_only_writes_the_study_without_timing(tmp_path, capsys):
     with pytest.raises(SystemExit):  # argparse: not allowed together
         main(["scaling", "--missing-only", "--render-only", "--results", results])
     assert "not allowed with argument --missing-only" in capsys.readouterr().err
+
+
+def test_compare_help_prints_its_percentages_once(capsys):
+    with pytest.raises(SystemExit):
+        main(["compare", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "its 90 % interval" in text and "at 5 %." in text and "%%" not in text
+
+
+def test_a_bad_variant_value_is_an_error_before_any_work(tmp_path, capsys):
+    arguments = ["run", "--estimator", "ekf", "enkf[n=-3]", "--results", str(tmp_path)]
+    assert main(arguments) == 2
+    captured = capsys.readouterr()
+    assert "enkf: n=-3 must be an integer of at least 2" in captured.err
+    assert "kkl-bench:" not in captured.out and not any(tmp_path.iterdir())

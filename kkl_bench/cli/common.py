@@ -18,7 +18,9 @@ def names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:
     """``requested`` validated against ``registry``; ``None`` means every name, and ``all``
     among others stands for every name in its place (``all 'static_hyperkkl[guard=True]'``).
 
-    Estimators may be variants (``static_hyperkkl[guard=True]``), returned canonical.
+    Estimators may be variants (``static_hyperkkl[guard=True]``), returned canonical; each
+    is built once here, so a bad hyperparameter value (``enkf[n=-3]``) is an error before
+    any work starts.
     """
     if not requested:
         return tuple(registry.names())
@@ -26,7 +28,10 @@ def names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:
         name for entry in requested for name in (registry.names() if entry == "all" else [entry])
     ]
     if registry is estimators:
-        return tuple(dict.fromkeys(variants.canonical(name) for name in requested))
+        canonical = tuple(dict.fromkeys(variants.canonical(name) for name in requested))
+        for name in canonical:
+            variants.build(variants.split_row(name)[0])  # raises ValueError naming the value
+        return canonical
     for name in requested:
         registry.get(name)  # raises an error that lists the valid names
     return tuple(dict.fromkeys(requested))

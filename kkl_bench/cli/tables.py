@@ -45,9 +45,9 @@ def add_parser(commands) -> None:
     versus = commands.add_parser(
         "compare",
         help="compare two estimators cell by cell with a paired bootstrap",
-        description="Per cell: the ratio of A's mean RMSE to B's, its 90 %% interval from the "
+        description="Per cell: the ratio of A's mean RMSE to B's, its 90 % interval from the "
         "paired hierarchical bootstrap (test trajectories and seeds resampled) and the verdict "
-        "of one-sided tests at 5 %%.",
+        "of one-sided tests at 5 %.",
     )
     versus.add_argument("a", metavar="A", help="estimator (or variant) name")
     versus.add_argument("b", metavar="B", help="estimator (or variant) name")
