@@ -116,7 +116,7 @@ def _all_finite(values):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, out):
     """``out (n_y, n_x)`` = the Jacobian of ``s(h(x))``: the sensor's slope at ``h(x)``
     times ``dh/dx`` (:meth:`kkl_bench.measurement.SensedSystem.h_jacobian`)."""
@@ -128,14 +128,14 @@ def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, sl
             out[j, i] = slope[j] * out[j, i]
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def _sensed_output(output, sense, q, s, x, out):
     """``out (n_y,) = s(h(x))``."""
     output(x, q, out)
     sense(out, s)
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def ekf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
     p, q, s, g, y, u, dt, x0, P0, Q, R, inflation, out,
@@ -254,7 +254,7 @@ def _unscented_transform(points, Wm, Wc, noise, mean, covariance, residuals):
             covariance[a, c] = total + noise[a, c]
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def ukf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
     p, q, s, g, y, u, dt, x0, P0, Q, R, Wm, Wc, spread, out,

@@ -149,7 +149,7 @@ def no_constraint(x, p):
     pass
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def vector_field(drift, p, g, x, u, out):
     """``out = f(x) + g u`` (as :meth:`System.vector_field`)."""
     drift(x, p, out)
@@ -157,7 +157,7 @@ def vector_field(drift, p, g, x, u, out):
         out[i] = out[i] + u * g[i]
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def rk4_step(drift, p, g, x, u, dt, out, work):
     """``out`` = one RK4 step of ``f(x) + g u`` from ``x`` (:func:`simulate.rk4_step`).
 
@@ -198,7 +198,7 @@ def _chain(stages, target, previous, scale):
             stages[target, i, j] = total
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def rk4_step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stages):
     """``out (n_x, n_x)`` = the Jacobian of :func:`rk4_step` at ``x`` by the chain rule
     (:func:`simulate.rk4_step_jacobian`). ``work: (5, n_x)``, ``stages: (5, n_x, n_x)``
@@ -231,7 +231,7 @@ def rk4_step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stages):
             )
 
 
-@numba.njit(cache=True)
+@numba.njit  # not cached: numba cannot cache a function of functions
 def sensed_output(model_output, sense, q, s, x, out):
     """``out = s(h(x))``: the system's output read through the sensor."""
     model_output(x, q, out)
