@@ -25,7 +25,7 @@ import math
 import numba
 import numpy as np
 
-from kkl_bench.protocol.compiled import rk4_step, rk4_step_jacobian
+from kkl_bench.protocol.compiled import rk4_step, rk4_step_jacobian, sensed_output
 
 
 @numba.njit(cache=True)
@@ -98,17 +98,6 @@ def _matmul(a, b, out):
 
 
 @numba.njit(cache=True)
-def _matmul_transposed(a, b, out):
-    """``out = a @ b.T``."""
-    for i in range(a.shape[0]):
-        for j in range(b.shape[0]):
-            total = 0.0
-            for m in range(a.shape[1]):
-                total += a[i, m] * b[j, m]
-            out[i, j] = total
-
-
-@numba.njit(cache=True)
 def _all_finite(values):
     for value in values:  # noqa: SIM110 (a loop numba compiles)
         if not math.isfinite(value):
@@ -126,13 +115,6 @@ def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, sl
     for j in range(out.shape[0]):
         for i in range(out.shape[1]):
             out[j, i] = slope[j] * out[j, i]
-
-
-@numba.njit  # not cached: numba cannot cache a function of functions
-def _sensed_output(output, sense, q, s, x, out):
-    """``out (n_y,) = s(h(x))``."""
-    output(x, q, out)
-    sense(out, s)
 
 
 @numba.njit  # not cached: numba cannot cache a function of functions
@@ -170,7 +152,7 @@ def ekf(
                 rk4_step(drift, p, g, x, u_previous, dt, x_next, work)
                 x[:] = x_next
                 _matmul(F, P, FP)
-                _matmul_transposed(FP, F, P)
+                _matmul(FP, F.T, P)
                 for i in range(n):
                     for j in range(n):
                         P[i, j] += Q[i, j]
@@ -180,7 +162,7 @@ def ekf(
                             P[i, j] = inflation * (P[i, j] - Q[i, j]) + Q[i, j]
             if _all_finite(y[b, k]):
                 _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, H)
-                _matmul_transposed(P, H, PHT)
+                _matmul(P, H.T, PHT)
                 _matmul(H, PHT, S)
                 for i in range(n_y):
                     for j in range(n_y):
@@ -188,7 +170,7 @@ def ekf(
                 if not _invert(S, SI):
                     break
                 _matmul(PHT, SI, K)
-                _sensed_output(output, sense, q, s, x, h)
+                sensed_output(output, sense, q, s, x, h)
                 for j in range(n_y):
                     h[j] = y[b, k, j] - h[j]
                 for i in range(n):
@@ -203,9 +185,9 @@ def ekf(
                             total += K[i, m] * H[m, j]
                         I_KH[i, j] = (1.0 if i == j else 0.0) - total
                 _matmul(I_KH, P, I_KHP)
-                _matmul_transposed(I_KHP, I_KH, P)
+                _matmul(I_KHP, I_KH.T, P)
                 _matmul(K, R, KR)
-                _matmul_transposed(KR, K, FP)
+                _matmul(KR, K.T, FP)
                 for i in range(n):
                     for j in range(n):
                         P[i, j] += FP[i, j]
@@ -289,7 +271,7 @@ def ukf(
                     break
             if _all_finite(y[b, k]):
                 for i in range(count):
-                    _sensed_output(output, sense, q, s, propagated[i], outputs[i])
+                    sensed_output(output, sense, q, s, propagated[i], outputs[i])
                 _unscented_transform(outputs, Wm, Wc, R, zp, S, residuals_z)
                 if not _invert(S, SI):
                     break

@@ -155,7 +155,7 @@ def peak_gflops(precision: str, threads: int = 1, rounds: int = 5) -> float:
     return 2 * PEAK_SIZE**3 / best / 1e9
 
 
-def counted_flops(estimator, data) -> tuple[float, str]:
+def counted_flops(estimator) -> tuple[float, str]:
     """``(flops per trajectory-step, precision)`` of a fitted estimator: its own
     ``flops_per_step()`` (the filters count theirs, in float64), else NaN in float32 (a
     network: torch's flop counter misses the LSTM and the injection observer's forced
@@ -228,9 +228,9 @@ def measure(
             warm_up(fitted[name, engine, task.system], test_sets[task])
     row_engine = {name: next(iter(engines[name])) for name in timed}  # compiled if any
     arithmetic = {
-        (name, task): counted_flops(fitted[name, row_engine[name], task.system], data)
+        (name, task): counted_flops(fitted[name, row_engine[name], task.system])
         for name in tqdm(spec.estimators, desc="counting flops", unit="row")
-        for task, data in test_sets.items()
+        for task in test_sets
     }
     peaks = {
         precision: peak_gflops(precision, threads)

@@ -186,9 +186,9 @@ def test_flops_are_what_an_estimator_declares_and_unknown_otherwise():
         def flops_per_step(self):
             return 123.0
 
-    flops, precision = cost.counted_flops(Network(), data=None)
+    flops, precision = cost.counted_flops(Network())
     assert np.isnan(flops) and precision == "float32"
-    assert cost.counted_flops(Declared(), data=None) == (123.0, "float64")
+    assert cost.counted_flops(Declared()) == (123.0, "float64")
     with pytest.raises(ValueError, match=r"float16.*float32, float64"):
         cost.peak_gflops("float16")
 
