@@ -3,27 +3,25 @@ model."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from kkl_bench.estimators import kalman_kernels
-from kkl_bench.estimators.kalman import (
-    KalmanBaseline,
-    box_prior,
-    check_engine,
-    measurement_covariance,
-)
+from kkl_bench.estimators.kalman import KalmanBaseline, check_design, huber_noise
 
-from kkl_bench.estimator import FitContext
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
 
 
 class _RK4ExtendedKalmanFilter(ExtendedKalmanFilter):
-    """filterpy's EKF with the RK4 step as the (nonlinear) transition.
+    """filterpy's EKF with the RK4 step, then the system's constraint, as the (nonlinear)
+    transition.
 
     filterpy's ``predict_x`` is linear (``F x + B u``): here it is the RK4
-    step, and ``F`` is its exact Jacobian at the prior mean.
+    step, and ``F`` is its exact Jacobian at the prior mean (the constraint, a
+    reflection where it acts, projects the mean and leaves ``F`` as it is).
     """
 
     def __init__(self, system: System, dt: float, inflation: float = 1.0) -> None:
@@ -40,28 +38,45 @@ class _RK4ExtendedKalmanFilter(ExtendedKalmanFilter):
             self.P_prior = self.P.copy()
 
     def predict_x(self, u=0.0):
-        self.x = rk4_step(self.system, self.x[:, 0], np.asarray(u), self.dt)[:, None]
+        step = rk4_step(self.system, self.x[:, 0], np.asarray(u), self.dt)
+        self.x = self.system.constrain(step)[:, None]
 
 
 @estimators.register("ekf")
 class ExtendedKalman(KalmanBaseline):
-    """EKF with the RK4 transition, its exact Jacobian and the protocol's Q, R and prior.
+    """EKF with the RK4 transition, its exact Jacobian and the protocol's Q, R and prior,
+    built for the task's sensor (:mod:`kkl_bench.estimators.kalman`).
 
     Parameters
     ----------
     inflation: factor on the propagated covariance, ``P = inflation F P F^T + Q`` (1: the
-        plain EKF; DAPPER's ``ExtKF(infl=a)`` at step ``dt`` is ``inflation = a**dt``).
-    engine: ``"compiled"`` or ``"reference"`` (filterpy; :mod:`kkl_bench.estimators.kalman`).
+        plain EKF; DAPPER's ``ExtKF(infl=a)`` at step ``dt`` is ``inflation = a**dt``), or
+        None (default): 1 on the protocol's measurement model, chosen on validation
+        trajectories on any other.
+    robust: ``"auto"`` (default: Huber's update under a heavy-tailed noise law),
+        ``"huber"`` or ``"none"``.
+    threshold: Huber's ``c`` in predicted standard deviations, or None (default): chosen on
+        validation trajectories.
+    quantizer: ``"noise"`` (default: a quantizer read as additive noise) or ``"in-model"``.
+    engine: ``"compiled"`` or ``"reference"`` (filterpy).
     """
 
     name = "ekf"
 
-    def __init__(self, inflation: float = 1.0, engine: str = "reference") -> None:
+    def __init__(
+        self,
+        inflation: float | None = None,
+        robust: str = "auto",
+        threshold: float | None = None,
+        quantizer: str = "noise",
+        engine: str = "reference",
+    ) -> None:
         self.inflation = inflation
+        self.robust = robust
+        self.threshold = threshold
+        self.quantizer = quantizer
         self.engine = engine
-        if not (isinstance(inflation, int | float) and inflation >= 1.0):
-            raise ValueError(f"ekf: inflation={inflation!r} must be a number of at least 1")
-        check_engine("ekf", engine)
+        check_design("ekf", robust, threshold, inflation, quantizer, engine)
 
     def count_flops(self, model):
         n, m = model.n_x, model.n_y
@@ -69,23 +84,22 @@ class ExtendedKalman(KalmanBaseline):
         gain = m * n + 2 * n * n * m + 2 * m * m * n + m * m + 2 * m**3 + 2 * n * m * m
         correction = m + 2 * n * m  # the residual and x + K r
         joseph = 2 * n * n * m + n * n + 4 * n**3 + 2 * n * m * m + 2 * n * n * m + n * n
-        return predict + gain + correction + joseph
+        huber = 5 * m + m * m if math.isfinite(self.settings_["threshold"]) else 0
+        return predict + gain + correction + joseph + huber
 
-    def run_compiled(self, model, context, dt, y, u, out):
-        mean, covariance = box_prior(context)
+    def run_compiled(self, model, settings, dt, y, u, out):
+        mean, covariance, Q = self.prior()
         kalman_kernels.ekf(
             *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
-            context.sigma_w**2 * np.eye(model.n_x), measurement_covariance(context),
-            float(self.inflation), out,
+            Q, self.R_, settings["inflation"], settings["threshold"], out,
         )  # fmt: skip
 
-    def make_filter(self, context: FitContext, dt: float):
-        kalman_filter = _RK4ExtendedKalmanFilter(context.system, dt, self.inflation)
-        mean, covariance = box_prior(context)
-        kalman_filter.x = mean[:, None].copy()
-        kalman_filter.P = covariance
-        kalman_filter.Q = context.sigma_w**2 * np.eye(context.system.n_x)
-        kalman_filter.R = measurement_covariance(context)
+    def make_filter(self, settings, dt):
+        kalman_filter = _RK4ExtendedKalmanFilter(self.system_, dt, settings["inflation"])
+        kalman_filter.x, kalman_filter.P, kalman_filter.Q = self.prior()
+        kalman_filter.x = kalman_filter.x[:, None].copy()
+        kalman_filter.R = self.R_
+        kalman_filter.threshold = settings["threshold"]
         return kalman_filter
 
     def step(self, kalman_filter, u_previous, y):
@@ -94,6 +108,11 @@ class ExtendedKalman(KalmanBaseline):
             kalman_filter.predict(u_previous)
         if not np.isfinite(y).all():
             return kalman_filter.x[:, 0]
+        x = kalman_filter.x[:, 0]
+        if math.isfinite(kalman_filter.threshold):
+            H = system.h_jacobian(x)
+            S = H @ kalman_filter.P @ H.T + self.R_
+            kalman_filter.R = huber_noise(self.R_, y - system.h(x), S, kalman_filter.threshold)
         kalman_filter.update(
             y[:, None],
             HJacobian=lambda x: system.h_jacobian(x[:, 0]),

@@ -20,8 +20,13 @@ by the model it filters with (the calibrated one for ``enkf+logged``). Each
 member is then propagated by the protocol's transition: the RK4 step with the held input,
 process noise ``N(0, sigma_w^2 I)`` and the system's constraint, as the truth
 is. A sample whose measurement is missing (NaN) is a forecast only. On a task with
-another measurement model the members are read through its sensor (``system.h``)
-and ``R`` is the noise law's variance (plus a quantizer's ``step^2 / 12``).
+another measurement model the members are read through its sensor (``system.h``),
+but for a quantizer, which is read as additive noise by default (``quantizer='noise'``:
+``h`` without it; ``'in-model'`` keeps it in ``h``, where members that share one
+quantization cell predict one measurement and the update vanishes), and ``R`` is the
+noise law's variance (plus a quantizer's ``step^2 / 12``). The analysis stays the
+Gaussian one under heavy-tailed noise (the robust update is the EKF's and the UKF's,
+``kkl_bench.estimators.kalman``).
 
 The first ensemble is drawn from the uniform x0 box, the protocol's prior.
 Every trajectory draws from its own generator (seed and first measurement),
@@ -35,15 +40,16 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from kkl_bench.estimators.kalman import QUANTIZERS, check_choice
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 
 from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator
-from kkl_bench.kkl.inputs import FORCED_TRAINING
-from kkl_bench.protocol.metrics import steady_state_start
+from kkl_bench.measurement import filter_system
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import Ring, System
 from kkl_bench.registry import estimators
+from kkl_bench.tuning import choose, validation_data
 
 
 def transform(forecast: np.ndarray, predicted: np.ndarray, y: np.ndarray, r: float) -> np.ndarray:
@@ -136,7 +142,6 @@ def ring_taper(ring: Ring, half_width: float) -> np.ndarray:
 
 INFLATIONS = (1.0, 1.01, 1.02, 1.05, 1.1)
 """The inflations the default ``enkf`` chooses from."""
-VALIDATION_TRAJECTORIES = 16
 
 
 @estimators.register("enkf")
@@ -152,17 +157,25 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         of the Gaspari-Cohn taper of a local analysis per site (the LETKF,
         :func:`local_transform`; measurements 2 half-widths away or more are ignored);
         only on systems that declare a ring (``System.ring``).
+    quantizer: ``"noise"`` (default: a quantizer read as additive noise) or ``"in-model"``.
     """
 
     name = "enkf"
+    family = "model-based"
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
 
     def __init__(
-        self, n: int = 24, inflation: float | None = None, localization: float | None = None
+        self,
+        n: int = 24,
+        inflation: float | None = None,
+        localization: float | None = None,
+        quantizer: str = "noise",
     ) -> None:
         self.n = n
         self.inflation = inflation
         self.localization = localization
+        self.quantizer = quantizer
+        check_choice("enkf", "quantizer", quantizer, QUANTIZERS)
         if localization is not None and not (
             isinstance(localization, int | float) and localization > 0
         ):
@@ -192,19 +205,23 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             if self.localization is None
             else LocalTaper.of(ring_taper(context.system.ring, self.localization))
         )
+        self.system_ = (
+            filter_system(context.system, context.measurement)
+            if self.quantizer == "noise"
+            else context.system
+        )
         self.scores_ = {}
         self.inflation_ = self.inflation
         if self.inflation is None:
-            data = context.training.simulate(
-                FORCED_TRAINING, VALIDATION_TRAJECTORIES, stream="enkf/validation"
-            )
-            start = steady_state_start(data.x.shape[1])
-            for inflation in INFLATIONS:
-                self.inflation_ = inflation
-                x_hat = self.estimate(data.t, data.y, data.u)
-                error = float(np.sqrt(np.mean((x_hat[:, start:] - data.x[:, start:]) ** 2)))
-                self.scores_[f"{inflation:g}"] = error if np.isfinite(error) else float("inf")
-            self.inflation_ = min(INFLATIONS, key=lambda value: self.scores_[f"{value:g}"])
+
+            def estimate(setting, data):
+                self.inflation_ = setting["inflation"]
+                return self.estimate(data.t, data.y, data.u)
+
+            candidates = [{"inflation": value} for value in INFLATIONS]
+            data = validation_data(context.training, "enkf/validation")
+            best, self.scores_ = choose(candidates, estimate, data)
+            self.inflation_ = best["inflation"]
         return self
 
     def fit_report(self):
@@ -213,7 +230,12 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             "members": self.n,
             **({"localization": self.localization} if self.localization is not None else {}),
             "inflation": self.inflation_,
-            **({"inflation_selection": self.scores_} if self.scores_ else {}),
+            **({"selection": self.scores_} if self.scores_ else {}),
+            **(
+                {"quantizer": self.quantizer}
+                if self.check_fitted().measurement.sensor.reads_as_noise
+                else {}
+            ),
         }
 
     def flops_per_step(self) -> float:
@@ -222,7 +244,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         ``9 N^3``); with localization, one analysis per site over every measurement (an
         upper bound: a site weighs only the measurements within ``2 r``). NaN for a system
         without a compiled model (no declared drift count)."""
-        model = self.check_fitted().system.compiled()
+        model = self.system_.compiled()
         if model is None:
             return math.nan
         members, n, m = self.n, model.n_x, model.n_y
@@ -237,7 +259,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
 
     def estimate(self, t, y, u):
         context = self.check_fitted()
-        system = context.system
+        system = self.system_
         dt = float(t[1] - t[0]) if len(t) > 1 else context.dt
         generators = trajectory_generators(context.seed, y[:, 0])
         batch, steps, _ = y.shape

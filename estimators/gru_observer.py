@@ -89,6 +89,7 @@ class GRUObserver(Estimator):
     """
 
     name = "gru_observer"
+    family = "learned"
     uses_logged_data = True
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
     """Trained on the task's measurement model (``FitContext.training``); under a sparse

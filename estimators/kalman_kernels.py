@@ -117,15 +117,28 @@ def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, sl
             out[j, i] = slope[j] * out[j, i]
 
 
+@numba.njit(cache=True)
+def _huber_noise(R, residual, S, threshold, out):
+    """``out`` = ``R`` (diagonal) with each output's variance divided by its Huber weight
+    ``min(1, threshold / e)``, ``e = |residual_j| / sqrt(S_jj)``
+    (:func:`kkl_bench.estimators.kalman.huber_noise`, in the same operations)."""
+    out[:, :] = 0.0
+    for j in range(R.shape[0]):
+        normalized = abs(residual[j]) / math.sqrt(S[j, j])
+        weight = threshold / normalized if normalized > 0.0 else math.inf
+        out[j, j] = R[j, j] / min(1.0, weight)
+
+
 @numba.njit  # not cached: numba cannot cache a function of functions
 def ekf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
-    p, q, s, g, y, u, dt, x0, P0, Q, R, inflation, out,
+    p, q, s, g, y, u, dt, x0, P0, Q, R, inflation, threshold, out,
 ):  # fmt: skip
     """filterpy's ``ExtendedKalmanFilter`` with the RK4 transition (``estimators/ekf.py``):
-    predict ``x = RK4(x)``, ``P = F P F^T + Q`` (``inflation (F P F^T) + Q`` with
-    inflation), ``F`` the RK4 step's Jacobian at the posterior mean; update in Joseph form
-    ``P = (I - K H) P (I - K H)^T + K R K^T``."""
+    predict ``x = C(RK4(x))`` (``C`` the constraint), ``P = F P F^T + Q`` (``inflation
+    (F P F^T) + Q`` with inflation), ``F`` the RK4 step's Jacobian at the posterior mean;
+    update in Joseph form ``P = (I - K H) P (I - K H)^T + K R K^T``, with ``R`` Huber's
+    (:func:`_huber_noise`) for a finite ``threshold``."""
     batch, steps, n_y = y.shape
     n = x0.shape[0]
     x, x_next = np.empty(n), np.empty(n)
@@ -140,6 +153,8 @@ def ekf(
     )
     KR, I_KH, I_KHP = np.empty((n, n_y)), np.empty((n, n)), np.empty((n, n))
     h, slope = np.empty(n_y), np.empty(n_y)
+    robust = math.isfinite(threshold)
+    R_used = R.copy()
     for b in range(batch):
         x[:] = x0
         P[:, :] = P0
@@ -150,6 +165,7 @@ def ekf(
                     drift, drift_jacobian, p, g, x, u_previous, dt, F, work, jacobian_work
                 )
                 rk4_step(drift, p, g, x, u_previous, dt, x_next, work)
+                constrain(x_next, p)
                 x[:] = x_next
                 _matmul(F, P, FP)
                 _matmul(FP, F.T, P)
@@ -164,15 +180,20 @@ def ekf(
                 _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, H)
                 _matmul(P, H.T, PHT)
                 _matmul(H, PHT, S)
-                for i in range(n_y):
-                    for j in range(n_y):
-                        S[i, j] += R[i, j]
-                if not _invert(S, SI):
-                    break
-                _matmul(PHT, SI, K)
                 sensed_output(output, sense, q, s, x, h)
                 for j in range(n_y):
                     h[j] = y[b, k, j] - h[j]
+                if robust:
+                    for i in range(n_y):
+                        for j in range(n_y):
+                            SI[i, j] = S[i, j] + R[i, j]
+                    _huber_noise(R, h, SI, threshold, R_used)
+                for i in range(n_y):
+                    for j in range(n_y):
+                        S[i, j] += R_used[i, j]
+                if not _invert(S, SI):
+                    break
+                _matmul(PHT, SI, K)
                 for i in range(n):
                     correction = 0.0
                     for j in range(n_y):
@@ -186,7 +207,7 @@ def ekf(
                         I_KH[i, j] = (1.0 if i == j else 0.0) - total
                 _matmul(I_KH, P, I_KHP)
                 _matmul(I_KHP, I_KH.T, P)
-                _matmul(K, R, KR)
+                _matmul(K, R_used, KR)
                 _matmul(KR, K.T, FP)
                 for i in range(n):
                     for j in range(n):
@@ -239,12 +260,13 @@ def _unscented_transform(points, Wm, Wc, noise, mean, covariance, residuals):
 @numba.njit  # not cached: numba cannot cache a function of functions
 def ukf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
-    p, q, s, g, y, u, dt, x0, P0, Q, R, Wm, Wc, spread, out,
+    p, q, s, g, y, u, dt, x0, P0, Q, R, Wm, Wc, spread, inflation, threshold, out,
 ):  # fmt: skip
     """filterpy's ``UnscentedKalmanFilter`` with Merwe scaled sigma points (``Wm, Wc``,
     ``spread = n + lambda``) and the RK4 transition (``estimators/ukf.py``): predict
-    through the sigma points, then redraw them from the predicted ``(x, P)``; update
-    ``K = Pxz S^-1``, ``P = P - K S K^T``."""
+    through the sigma points (each then constrained), inflate ``P = inflation (P - Q) +
+    Q``, then redraw them from the predicted ``(x, P)``; update ``K = Pxz S^-1``, ``P = P
+    - K S K^T``, with ``R`` Huber's (:func:`_huber_noise`) for a finite ``threshold``."""
     batch, steps, n_y = y.shape
     n = x0.shape[0]
     count = 2 * n + 1
@@ -254,6 +276,8 @@ def ukf(
     outputs, residuals_z = np.empty((count, n_y)), np.empty((count, n_y))
     zp, S, SI = np.empty(n_y), np.empty((n_y, n_y)), np.empty((n_y, n_y))
     Pxz, K, KS = np.empty((n, n_y)), np.empty((n, n_y)), np.empty((n, n_y))
+    robust = math.isfinite(threshold)
+    R_used, innovation = R.copy(), np.empty(n_y)
     for b in range(batch):
         x[:] = x0
         P[:, :] = P0
@@ -266,13 +290,23 @@ def ukf(
                     break
                 for i in range(count):
                     rk4_step(drift, p, g, points[i], u_previous, dt, propagated[i], work)
+                    constrain(propagated[i], p)
                 _unscented_transform(propagated, Wm, Wc, Q, x, P, residuals_x)
+                if inflation != 1.0:
+                    for i in range(n):
+                        for j in range(n):
+                            P[i, j] = inflation * (P[i, j] - Q[i, j]) + Q[i, j]
                 if not _sigma_points(x, P, spread, root, propagated):
                     break
             if _all_finite(y[b, k]):
                 for i in range(count):
                     sensed_output(output, sense, q, s, propagated[i], outputs[i])
                 _unscented_transform(outputs, Wm, Wc, R, zp, S, residuals_z)
+                if robust:
+                    for c in range(n_y):
+                        innovation[c] = y[b, k, c] - zp[c]
+                    _huber_noise(R, innovation, S, threshold, R_used)
+                    _unscented_transform(outputs, Wm, Wc, R_used, zp, S, residuals_z)
                 if not _invert(S, SI):
                     break
                 Pxz[:, :] = 0.0

@@ -190,11 +190,12 @@ def ekf_mean_gain(context: FitContext) -> np.ndarray:
     trajectories of a training stream (``kalmannet/ekf-gain``)."""
     families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
     _, y, u = simulate_families(context, families, EKF_GAIN_TRAJECTORIES, "kalmannet/ekf-gain")
-    ekf = ExtendedKalman().fit(context)
+    # the plain EKF on every task (the gain that KalmanNet's training has started from)
+    ekf = ExtendedKalman(inflation=1.0, robust="none", quantizer="in-model").fit(context)
     start = steady_state_start(y.shape[1])
     gains = []
     for b in range(len(y)):
-        kalman_filter = ekf.make_filter(context, context.dt)
+        kalman_filter = ekf.make_filter(ekf.settings_, context.dt)
         for k in range(y.shape[1]):
             ekf.step(kalman_filter, None if k == 0 else float(u[b, k - 1, 0]), y[b, k])
             if k >= start and np.isfinite(y[b, k]).all():
@@ -216,6 +217,7 @@ class KalmanNet(Estimator):
     """
 
     name = "kalmannet"
+    family = "learned"
     uses_logged_data = True
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
     """Trained on the task's measurement model (``FitContext.training``); under a sparse

@@ -316,6 +316,7 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
     """
 
     name = "particle_filter"
+    family = "limit"
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
     bayes_limit = True
 

@@ -191,6 +191,7 @@ class RingObserver(Estimator):
     """
 
     name = "ring_observer"
+    family = "learned"
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
     """Trained on the task's measurement model; under a sparse sampling the innovation is
     applied at the samples measured only."""

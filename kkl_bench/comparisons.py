@@ -9,7 +9,7 @@ from collections.abc import Collection, Sequence
 import numpy as np
 import pandas as pd
 
-from kkl_bench import variants
+from kkl_bench import families, variants
 from kkl_bench.report.model import Table
 from kkl_bench.significance import compare
 from kkl_bench.summary import (
@@ -147,31 +147,46 @@ def limit_rows(summary: pd.DataFrame) -> pd.DataFrame:
     return chosen.rename(columns={"estimator": "row", "rmse_mean": "rmse"})[["row", "rmse"]]
 
 
-MODEL_BASED = ("ekf", "ukf", "enkf", LIMIT)
-"""Estimators given the exact model and nothing learned; every other row is a learned one."""
 LIMIT_COLUMNS = {
     "system": "System",
     "regime": "Regime",
     "limit_row": "Limit row",
     "limit_rmse": "Limit RMSE",
-    "ekf": "EKF / limit",
-    "ukf": "UKF / limit",
-    "enkf": "EnKF / limit",
+    "best_model_based": "Best model-based",
+    "best_model_based_ratio": "Best model-based / limit",
     "best_learned": "Best learned",
     "best_learned_ratio": "Best learned / limit",
 }
+HEADROOM = 1.3
+"""A cell has headroom when the best model-based row is at least this many times the
+limit (protocol 7.6): there a better observer is measurably possible."""
+
+
+def family_rows(summary: pd.DataFrame, family: str) -> list[str]:
+    """The rows of ``summary`` (not the paper's) whose family is ``family``."""
+    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    return list(dict.fromkeys(ours.loc[families.of_rows(ours) == family, "estimator"]))
+
+
+def _best(ok: pd.Series, rows: list[str], system: str, regime: str) -> tuple[str, float]:
+    """The row of ``rows`` with the lowest finite mean RMSE in the cell, and that RMSE
+    (``("", nan)`` if none scored one)."""
+    scored = {r: ok[(r, system, regime)] for r in rows if (r, system, regime) in ok}
+    finite = {r: value for r, value in scored.items() if math.isfinite(value)}
+    if not finite:
+        return "", math.nan
+    best = min(finite, key=finite.get)
+    return best, finite[best]
 
 
 def limit_frame(summary: pd.DataFrame) -> pd.DataFrame:
     """Per cell: the limit row (:func:`limit_rows`) and its RMSE, the posterior mean under
-    the exact model and the least any estimator can expect, and the EKF's, the UKF's, the
-    EnKF's and the best learned row's RMSE over it (:data:`LIMIT_COLUMNS`). Empty without
-    particle-filter results."""
+    the exact model and the least any estimator can expect, and the best model-based and
+    the best learned row (families, :mod:`kkl_bench.families`) with their RMSE over it
+    (:data:`LIMIT_COLUMNS`). Empty without particle-filter results."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
     ok = ours[ours["status"] == "ok"].set_index(["estimator", "system", "regime"])["rmse_mean"]
-    learned = [
-        e for e in dict.fromkeys(ours["estimator"]) if variants.base_name(e) not in MODEL_BASED
-    ]
+    model_based, learned = family_rows(ours, "model-based"), family_rows(ours, "learned")
     limits = limit_rows(summary)
     rows = []
     for system in in_paper_order(ours["system"], SYSTEM_TITLES):
@@ -179,19 +194,18 @@ def limit_frame(summary: pd.DataFrame) -> pd.DataFrame:
             if (system, regime) not in limits.index:
                 continue
             limit_row, limit = limits.loc[(system, regime)]
-            candidates = {e: ok[(e, system, regime)] for e in learned if (e, system, regime) in ok}
-            best = min(candidates, key=candidates.get) if candidates else ""
+            filter_row, filter_rmse = _best(ok, model_based, system, regime)
+            learned_row, learned_rmse = _best(ok, learned, system, regime)
             rows.append(
                 {
                     "system": system,
                     "regime": regime,
                     "limit_row": limit_row,
                     "limit_rmse": limit,
-                    "ekf": ok.get(("ekf", system, regime), math.nan) / limit,
-                    "ukf": ok.get(("ukf", system, regime), math.nan) / limit,
-                    "enkf": ok.get(("enkf", system, regime), math.nan) / limit,
-                    "best_learned": best,
-                    "best_learned_ratio": candidates[best] / limit if best else math.nan,
+                    "best_model_based": filter_row,
+                    "best_model_based_ratio": filter_rmse / limit,
+                    "best_learned": learned_row,
+                    "best_learned_ratio": learned_rmse / limit,
                 }
             )
     return pd.DataFrame(rows, columns=list(LIMIT_COLUMNS))
@@ -210,10 +224,57 @@ def limit_table(summary: pd.DataFrame, id: str = "limit") -> Table | None:
     return Table(frame, LIMIT_COLUMNS, id=id)
 
 
+def headroom_sentence(summary: pd.DataFrame) -> str:
+    """How many of the cells with a limit have headroom (:data:`HEADROOM`), read from
+    :func:`limit_frame`; empty without a limit."""
+    frame = limit_frame(summary)
+    if frame.empty:
+        return ""
+    ratios = frame["best_model_based_ratio"]
+    count = int((ratios >= HEADROOM).sum())
+    return (
+        f"The best model-based row is at least {HEADROOM:g} times the limit in {count} of "
+        f"{len(frame)} cells"
+        + (f" (median {ratios.median():.3g} times)." if ratios.notna().any() else ".")
+    )
+
+
+def one_line_answer(summary: pd.DataFrame) -> str:
+    """One sentence on a track's results (``summary`` of one track): which row has the
+    lowest mean RMSE in how many cells (the limit rows aside), and, where a limit was
+    scored, the median over cells of the best model-based and the best learned row's RMSE
+    over it. Empty if no row scored."""
+    ours = summary[
+        ~summary["estimator"].str.startswith(PAPER_PREFIX)
+        & (summary["status"] == "ok")
+        & (families.of_rows(summary) != "limit")
+    ]
+    finite = ours[np.isfinite(ours["rmse_mean"])]
+    if finite.empty:
+        return ""
+    best = finite.loc[finite.groupby(["system", "regime"])["rmse_mean"].idxmin()]
+    counts = best["estimator"].value_counts()
+    cells = finite.groupby(["system", "regime"]).ngroups
+    leaders = ", ".join(f"`{row}` in {count}" for row, count in counts.head(3).items())
+    text = f"Lowest RMSE of the {cells} cells (the limit aside): {leaders}"
+    if len(counts) > 3:
+        text += f", {len(counts) - 3} other rows in {int(counts.iloc[3:].sum())}"
+    frame = limit_frame(summary)
+    if frame.empty:
+        return text + "."
+    medians = [
+        f"the best {family} row {frame[column].median():.3g} times"
+        for family, column in (
+            ("model-based", "best_model_based_ratio"),
+            ("learned", "best_learned_ratio"),
+        )
+        if frame[column].notna().any()
+    ]
+    return text + "; median distance to the limit: " + " and ".join(medians) + "."
+
+
 CALIBRATED = "ukf+logged"
 """The calibrate-then-filter row the learned ``+logged`` rows are compared with."""
-GAUSSIAN_FILTERS = ("ekf", "ukf", "enkf")
-"""The filters given the exact model that a learned row must beat on the ``hard`` track."""
 
 
 def best_against_best(
@@ -256,21 +317,15 @@ def best_against_best(
 def calibrated_versus_learned(summary: pd.DataFrame, track: str) -> pd.DataFrame:
     """:func:`best_against_best` of the calibrated UKF (:data:`CALIBRATED`, ``a``) and the
     learned ``+logged`` rows (``b``): ``"a lower"`` means calibrate-then-filter is lower."""
-    learned = [
-        name
-        for name in set(summary["estimator"])
-        if name.endswith("+logged")
-        and variants.base_name(variants.split_logged(name)[0]) not in MODEL_BASED
-    ]
+    learned = [name for name in family_rows(summary, "learned") if name.endswith(variants.LOGGED)]
     return best_against_best(summary, [CALIBRATED], learned, track)
 
 
-def learned_versus_filters(summary: pd.DataFrame, track: str) -> pd.DataFrame:
-    """:func:`best_against_best` of the learned rows (``a``: every row not in
-    :data:`MODEL_BASED`) and the Gaussian filters (:data:`GAUSSIAN_FILTERS`, ``b``):
-    ``"a lower"`` means a learned row beats every filter that did not diverge."""
+def learned_versus_model_based(summary: pd.DataFrame, track: str) -> pd.DataFrame:
+    """:func:`best_against_best` of the learned rows (``a``) and the model-based rows
+    (``b``), by their families (:mod:`kkl_bench.families`): ``"a lower"`` means a learned
+    row beats every model-based row that did not diverge."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
-    learned = [
-        name for name in set(ours["estimator"]) if variants.base_name(name) not in MODEL_BASED
-    ]
-    return best_against_best(ours, learned, GAUSSIAN_FILTERS, track)
+    return best_against_best(
+        ours, family_rows(ours, "learned"), family_rows(ours, "model-based"), track
+    )

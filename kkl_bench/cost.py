@@ -42,7 +42,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from kkl_bench import variants
+from kkl_bench import families, variants
 from kkl_bench.executors import thread_limit
 from kkl_bench.registry import estimators
 from kkl_bench.results import provenance
@@ -59,6 +59,7 @@ KEY = ["estimator", "system", "track", "regime"]
 
 COLUMNS = [
     "estimator",
+    "family",
     "system",
     "track",
     "regime",
@@ -250,6 +251,7 @@ def measure(
             measured.append(
                 {
                     "estimator": name,
+                    "family": families.row_family(name),
                     "system": task.system,
                     "track": task.track,
                     "regime": task.regime,
@@ -303,7 +305,9 @@ def merge(stored: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
 def read_costs(path: Path) -> pd.DataFrame | None:
     """The rows :func:`measure` wrote to ``path``, or None if there is no such file.
 
-    A file written before measurements were merged (no ``run`` column) was one run: its
+    A file written before families were recorded gets each row's declared family
+    (:mod:`kkl_bench.families`). A file written before measurements were merged (no
+    ``run`` column) was one run: its
     rows get run 1 and the reference's cost from its own :data:`REFERENCE` rows; one
     written before engines and floors were measured (no :data:`ARITHMETIC` columns) has
     them empty. Raises ``ValueError`` naming the file and the missing columns if it is not
@@ -312,6 +316,8 @@ def read_costs(path: Path) -> pd.DataFrame | None:
     if not path.exists():
         return None
     costs = pd.read_csv(path)
+    if "family" not in costs.columns and "estimator" in costs.columns:  # before families
+        costs.insert(1, "family", costs["estimator"].map(families.row_family))
     for column in ARITHMETIC:
         if column not in costs.columns:
             costs[column] = math.nan

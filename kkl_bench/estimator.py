@@ -124,6 +124,12 @@ class Estimator(ABC):
         ``unsupported_reason(system, measurement)`` gives; override that method to
         refuse systems the method cannot express (``ring_observer`` refuses systems
         without ``System.ring``).
+    family: what the estimator is (:mod:`kkl_bench.families`): ``"model-based"`` (uses
+        the model, trains nothing beyond choosing settings on validation streams),
+        ``"learned"`` (trains on data) or ``"limit"`` (approximates the exact posterior
+        mean). Default None: not declared, read as ``"learned"`` and marked as undeclared
+        by ``kkl-bench list``. Every table that separates learned rows from filters
+        reads it.
     bayes_limit: whether the estimator approximates the exact posterior mean (the
         particle filter). On a track whose tasks differ from the model it is fitted
         with (noise, initial box), it is also fitted with each task's truth and
@@ -131,6 +137,7 @@ class Estimator(ABC):
     """
 
     name: ClassVar[str] = ""
+    family: ClassVar[str | None] = None
     uses_seed: ClassVar[bool] = True
     uses_logged_data: ClassVar[bool] = False
     supported_measurements: ClassVar[frozenset[str]] = frozenset()

@@ -29,7 +29,7 @@ import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
-from kkl_bench import status, variants
+from kkl_bench import families, status, variants
 from kkl_bench.executors import execute
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.registry import estimators
@@ -70,6 +70,7 @@ def _cell(spec: RunSpec, name: str, params: dict, task: Task, seed: int, **field
     test_set = make_test_set(task, spec.profile.n_test)
     return CellResult(
         estimator=name,
+        family=families.row_family(name),
         system=task.system,
         regime=task.regime,
         task=task.id,

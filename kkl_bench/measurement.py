@@ -62,9 +62,13 @@ class Sensor(ABC):
     name: the registry name.
     added_variance: variance a Gaussian filter adds to ``R`` for what the sensor loses
         (0 but for the quantizer).
+    reads_as_noise: whether a Gaussian filter may leave the sensor out of its model and
+        read what it loses as additive noise of ``added_variance`` (the classical model of
+        quantization; :func:`filter_system`).
     """
 
     name: ClassVar[str]
+    reads_as_noise: ClassVar[bool] = False
 
     @abstractmethod
     def __call__(self, output):
@@ -151,6 +155,7 @@ class Quantized(Sensor):
     """
 
     name: ClassVar[str] = "quantized"
+    reads_as_noise: ClassVar[bool] = True
     step: float = 0.1
 
     def __post_init__(self) -> None:
@@ -337,6 +342,13 @@ class MeasurementModel:
         return self.noise.variance + self.sensor.added_variance
 
     @property
+    def inlier_variance(self) -> float:
+        """What a robust filter takes as each output's noise variance: the law's scale
+        squared (the inliers' variance under the outlier law, the Student-t scale's square),
+        plus what the sensor loses; :attr:`variance` for the Gaussian law."""
+        return self.noise.sigma**2 + self.sensor.added_variance
+
+    @property
     def mixture(self) -> tuple[tuple[float, float], ...] | None:
         """The noise law's Gaussian components ``((weight, variance), ...)`` as a filter
         takes them, each variance plus what the sensor loses (as :attr:`variance`); None
@@ -395,6 +407,16 @@ def held(y: np.ndarray) -> np.ndarray:
     last = np.where(missing, 0, np.arange(y.shape[1])[:, None])
     np.maximum.accumulate(last, axis=1, out=last)
     return np.take_along_axis(y, last, axis=1)
+
+
+def filter_system(system: System, measurement: MeasurementModel) -> System:
+    """The model a Gaussian filter reading ``measurement`` runs: ``system`` (the task's,
+    its sensor in ``h``), or the model without the sensor where the sensor reads as
+    additive noise (:attr:`Sensor.reads_as_noise`: a quantizer), whose loss is then in
+    :attr:`MeasurementModel.variance`."""
+    if measurement.sensor.reads_as_noise and isinstance(system, SensedSystem):
+        return system.model
+    return system
 
 
 def with_scale(

@@ -31,9 +31,10 @@ from filelock import FileLock
 
 from kkl_bench.protocol.streams import PAPER_TRACK
 
-RECORD_FORMAT = 2
-"""Version of the JSON layout below. Format 2 added ``track`` and ``settling_time_s``."""
-READABLE_FORMATS = (1, 2)
+RECORD_FORMAT = 3
+"""Version of the JSON layout below. Format 2 added ``track`` and ``settling_time_s``,
+format 3 ``family``."""
+READABLE_FORMATS = (1, 2, 3)
 """Formats :func:`read_cell` reads (a format-1 record is a paper-track cell without
 settling times)."""
 
@@ -48,7 +49,9 @@ class CellResult:
     ``"unsupported"`` (the estimator cannot be fitted for the task: its measurement
     model, a system it cannot express or cannot afford; ``error`` gives its reason) or
     ``"error"`` (the estimator raised or broke the interface; ``error`` says how). The
-    metric fields are empty but for ``"ok"``.
+    metric fields are empty but for ``"ok"``. ``family`` is the row's
+    (:mod:`kkl_bench.families`) when the cell was written; empty in cells written before
+    families were recorded.
     """
 
     estimator: str
@@ -74,6 +77,7 @@ class CellResult:
     provenance: dict[str, Any] = field(default_factory=dict)
     track: str = PAPER_TRACK
     settling_time_s: list[float] = field(default_factory=list)
+    family: str = ""
     record_format: int = RECORD_FORMAT
 
     @property

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from kkl_bench import convergence, variants
+from kkl_bench import convergence, families, variants
 from kkl_bench.cost import fastest_round_robin
 from kkl_bench.estimator import Estimator
 from kkl_bench.spec import RunSpec, make_fit_context
@@ -336,10 +336,12 @@ def add_timings(stored: pd.DataFrame, new: pd.DataFrame) -> pd.DataFrame:
 
 
 def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
-    """One row per (estimator, n): :func:`cell_summary`'s columns, the timings
+    """One row per (estimator, n): :func:`cell_summary`'s columns, the row's family
+    (:mod:`kkl_bench.families`), the timings
     (:func:`timing_frame`, :func:`add_timings`) and the ratios to the reference
     (:data:`RMSE_RATIO`, :data:`SPEEDUPS`; NaN where either side has no number)."""
     frame = cells.merge(timings, on=["estimator", "n"], how="left")
+    frame.insert(1, "family", frame["estimator"].map(families.row_family))
     costs = [*ONLINE, *REFERENCE_ONLINE]
     frame[costs] = frame[costs].astype(float)  # NaN where untimed, also when nothing is
     return with_ratios(frame).sort_values(["estimator", "n"]).reset_index(drop=True)
@@ -355,22 +357,17 @@ def with_ratios(frame: pd.DataFrame) -> pd.DataFrame:
     return frame.assign(**ratios)
 
 
-TRAINS = 1.0
-"""s: an estimator whose fit takes less than this at every size does not train (the filters
-build their model in microseconds); its fit time has no exponent."""
-
-
 def trained_fit_times(frame: pd.DataFrame) -> pd.Series:
-    """``frame``'s fit times, NaN for an estimator that does not train (:data:`TRAINS`):
-    a filter's fit time is the noise of building its model, not a cost that grows."""
-    trains = frame.groupby("estimator")["fit_time_s"].transform("max") >= TRAINS
-    return frame["fit_time_s"].where(trains)
+    """``frame``'s fit times, NaN for a row that does not train (its family is not
+    ``learned``, :mod:`kkl_bench.families`): a filter's fit time is the noise of building
+    its model, not a cost that grows."""
+    return frame["fit_time_s"].where(families.of_rows(frame) == "learned")
 
 
 def exponents(frame: pd.DataFrame) -> pd.DataFrame:
     """Per estimator, the fitted exponent ``p`` of ``value ~ n^p`` for the RMSE and each
     cost (:data:`GROWTHS`; NaN with fewer than two finite, positive points, and for the
-    fit time of an estimator that does not train, see :func:`trained_fit_times`)."""
+    fit time of a row that does not train, see :func:`trained_fit_times`)."""
     frame = frame.assign(fit_time_s=trained_fit_times(frame))
     rows = []
     for estimator, rows_of in frame.groupby("estimator"):

@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from kkl_bench import convergence, variants
+from kkl_bench import convergence, families, variants
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.results import mean_and_std
 from kkl_bench.significance import MARGIN, mark_column
@@ -121,7 +121,7 @@ def summary_table(
 ) -> pd.DataFrame:
     """One row per (estimator, system, regime): the numbers every table shows.
 
-    Columns: estimator, system, regime, status, n_seeds, n_test (per seed),
+    Columns: estimator, family (:mod:`kkl_bench.families`), system, regime, status, n_seeds, n_test (per seed),
     n_diverged (over all seeds), rmse_mean and rmse_seed_std (mean and
     standard deviation over seeds of the per-seed mean RMSE), smape_mean,
     smape_seed_std, nrmse_mean, fit_time_s, estimate_us_per_step (means over
@@ -149,6 +149,7 @@ def summary_table(
         rows.append(
             {
                 "estimator": estimator,
+                "family": families.row_family(estimator, _recorded_family(cells)),
                 "system": system,
                 "regime": regime,
                 "status": _status(cells, scored),
@@ -184,6 +185,12 @@ def summary_table(
         paper["mark"] = ""
         summary = pd.concat([summary, paper], ignore_index=True)
     return summary
+
+
+def _recorded_family(cells: pd.DataFrame) -> str:
+    """The family the newest of a row's cells recorded (empty if none did)."""
+    recorded = [family for family in cells.get("family", []) if isinstance(family, str) and family]
+    return recorded[-1] if recorded else ""
 
 
 def _status(cells: pd.DataFrame, scored: pd.DataFrame) -> str:

@@ -202,6 +202,10 @@ def test_variant_names_are_canonical_and_stored_under_their_own_name(tmp_path, c
         "alpha": 0.3,
         "beta": 2.0,
         "kappa": 1.0,
+        "inflation": None,
+        "robust": "auto",
+        "threshold": None,
+        "quantizer": "noise",
         "engine": "reference",
     }
     assert main(["check", "ukf[alpha=0.3]", "--system", "vdp"]) == 0

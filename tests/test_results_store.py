@@ -43,7 +43,7 @@ def truncate(path):
             lambda path: path.write_text(
                 json.dumps({**json.loads(path.read_text()), "record_format": 0})
             ),
-            "record format 0, this kkl-bench reads formats 1, 2; rerun the cell",
+            "record format 0, this kkl-bench reads formats 1, 2, 3; rerun the cell",
         ),
         (
             lambda path: path.write_text(json.dumps({**json.loads(path.read_text()), "colour": 1})),

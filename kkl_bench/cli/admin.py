@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from kkl_bench import variants
+from kkl_bench import families, variants
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.cli.common import add_cache_argument, names
 from kkl_bench.headroom import headroom
@@ -63,7 +63,10 @@ def add_parser(commands) -> None:
 def list_everything(args: argparse.Namespace) -> int:
     for registry in (systems, regimes, sensors, estimators):
         broken = registry.broken()  # imports every plugin: list only what works
-        print(f"{registry.kind}s: {', '.join(registry.names())}")
+        listed = registry.names()
+        if registry is estimators:  # with the family each declares (kkl_bench.families)
+            listed = [f"{name} ({_family_label(estimators.get(name))})" for name in listed]
+        print(f"{registry.kind}s: {', '.join(listed)}")
         for name, reason in broken.items():
             print(f"  BROKEN {registry.kind} {name} (not usable): {reason}")
     for track in load_tracks().values():
@@ -74,6 +77,12 @@ def list_everything(args: argparse.Namespace) -> int:
     for profile in load_profiles().values():
         print(f"profile {profile.name}: {profile.description}")
     return 0
+
+
+def _family_label(cls: type) -> str:
+    """``model-based``, or ``learned, undeclared`` for an estimator that declares none."""
+    family = families.estimator_family(cls)
+    return family if families.declared_family(cls) else f"{family}, undeclared"
 
 
 def manage_cache(args: argparse.Namespace) -> int:

@@ -28,6 +28,7 @@ class KKLEstimator(Estimator):
     system, measurement model and seed) and of the plugin's own second phase.
     """
 
+    family = "learned"
     uses_logged_data = True
     supported_measurements = frozenset({"sensor", "sampling", "noise"})
     """Trained on the task's measurement model (``FitContext.training`` and ``system.h``);

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import pandas as pd
 
 from kkl_bench import figures, findings, variants
-from kkl_bench.comparisons import comparison_cells, limit_table
+from kkl_bench.comparisons import comparison_cells, limit_table, one_line_answer
 from kkl_bench.cost import COST_FILE
 from kkl_bench.leaderboard import cost_table, grid_tables, measured_cost_table, paper_comparison
 from kkl_bench.protocol.streams import PAPER_TRACK
@@ -193,10 +193,15 @@ def long_table(summary: pd.DataFrame, name: str, settling: bool = False) -> Tabl
 def paper_sections(board: Board) -> list[Section]:
     summary, profile = board.summary, board.profile
     omitted = Text(SMOKE_OMITTED.format(profile=profile))
+    answer = one_line_answer(summary)
     sections = [
         Section(
             "RMSE (SMAPE %) per system and input regime",
-            [*grid_tables(summary, name="board-paper"), long_table(summary, "results")],
+            [
+                *([Text(f"**In one line.** {answer}")] if answer else []),
+                *grid_tables(summary, name="board-paper"),
+                long_table(summary, "results"),
+            ],
             tab=TAB,
         ),
         Section(
@@ -228,8 +233,9 @@ def paper_sections(board: Board) -> list[Section]:
 
 LIMIT_TEXT = """`particle_filter` estimates the posterior mean under the exact model (protocol
 section 6.1): no estimator can expect a lower RMSE. Each row divides the
-EKF's, the UKF's, the EnKF's and the best learned row's RMSE by it (1.00: at the limit;
-a ratio a little below 1 is the particle filter's own Monte Carlo error)."""
+RMSE of the best model-based and of the best learned row (families as each
+estimator declares them) by it (1.00: at the limit; a ratio a little below 1 is the
+particle filter's own Monte Carlo error)."""
 
 FINDINGS_GUIDE = """Each claim below is tested cell by cell on the results above: the ratio is
 the first estimator's RMSE over the second's (means over seeds), with its 90 %
