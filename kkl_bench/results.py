@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 from filelock import FileLock
 
+from kkl_bench.protocol.metrics import mark_diverged
 from kkl_bench.protocol.streams import PAPER_TRACK
 
 RECORD_FORMAT = 3
@@ -281,7 +282,10 @@ def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = Non
 
     Columns: the :class:`CellResult` fields, plus ``rmse_mean``, ``rmse_std``,
     ``smape_mean``, ``smape_std``, ``nrmse_mean``, ``nrmse_std`` and
-    ``n_diverged``. The means are ``inf`` when any trajectory diverged. A
+    ``n_diverged``. A trajectory diverged by the protocol's rule scores ``inf``
+    (:func:`~kkl_bench.protocol.metrics.mark_diverged`, applied here to cells stored
+    before the rule bounded the error too). The means are ``inf`` when any trajectory
+    diverged. A
     damaged file raises :class:`DamagedCellError`, or, if a ``damaged`` list
     is given, is appended to it and left out.
     """
@@ -295,10 +299,10 @@ def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = Non
                 raise
             damaged.append(error)
             continue
-        row = asdict(cell)
+        row = mark_diverged(asdict(cell))  # cells stored before the bound was applied
         for metric in ("rmse", "smape", "nrmse"):
             row[f"{metric}_mean"], row[f"{metric}_std"] = mean_and_std(row[metric])
-        row["n_diverged"] = cell.n_diverged
+        row["n_diverged"] = sum(not math.isfinite(value) for value in row["rmse"])
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -7,7 +7,14 @@ import time
 import numpy as np
 
 from kkl_bench.estimator import Estimator
-from kkl_bench.protocol.metrics import nrmse, per_state_rmse, rmse, settling_time, smape
+from kkl_bench.protocol.metrics import (
+    mark_diverged,
+    nrmse,
+    per_state_rmse,
+    rmse,
+    settling_time,
+    smape,
+)
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.results import KeptEstimate
 from kkl_bench.task import TestSet
@@ -47,6 +54,11 @@ def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
         raise ValueError(
             f"estimate returned shape {x_hat.shape}; expected {data.x.shape} (batch, steps, n_x)"
         )
+    if not np.isfinite(x_hat[:, 0]).all(axis=-1).any():
+        raise ValueError(
+            "estimate is NaN or inf from the first sample on every trajectory: an estimator "
+            "fault, not a divergence (a diverged trajectory loses track after a start)"
+        )
     metrics = {
         "rmse": rmse(data.x, x_hat).tolist(),
         "smape": smape(data.x, x_hat).tolist(),
@@ -55,4 +67,4 @@ def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
         "settling_time_s": settling_time(data.x, x_hat, test_set.state_scale, dt).tolist(),
         "estimate_us_per_step": 1e6 * elapsed / (x_hat.shape[0] * x_hat.shape[1]),
     }
-    return metrics, KeptEstimate(t=data.t, x=data.x[0], x_hat=x_hat[0])
+    return mark_diverged(metrics), KeptEstimate(t=data.t, x=data.x[0], x_hat=x_hat[0])

@@ -151,9 +151,9 @@ class Conformance:
         y[:, k + 1 :] += 0.5
         u[:, k + 1 :] = -u[:, k + 1 :] + 0.3
         perturbed = self.estimate(self.fitted, y, u)
-        assert np.allclose(perturbed[:, : k + 1], self.x_hat[:, : k + 1], rtol=1e-6, atol=1e-9), (
-            f"estimates up to step {k} changed when only later measurements and inputs changed"
-        )
+        assert np.allclose(
+            perturbed[:, : k + 1], self.x_hat[:, : k + 1], rtol=1e-6, atol=1e-9, equal_nan=True
+        ), f"estimates up to step {k} changed when only later measurements and inputs changed"
 
     def check_batch_independent(self) -> None:
         """A trajectory's estimate does not depend on the other trajectories of the batch."""
@@ -167,7 +167,7 @@ class Conformance:
         )
         # float32 networks in a feedback loop (an injection evaluated at the estimate)
         # turn batch-size-dependent BLAS rounding (1e-7) into differences of ~1e-5
-        assert np.allclose(alone, self.x_hat, rtol=1e-4, atol=1e-4), (
+        assert np.allclose(alone, self.x_hat, rtol=1e-4, atol=1e-4, equal_nan=True), (
             "estimates change with the rest of the batch"
         )
 
@@ -176,9 +176,9 @@ class Conformance:
         context = dataclasses.replace(self.context, cache_dir=self.fresh_cache())
         with sealed_test_streams():
             again = self.prototype.clone().fit(context)
-        assert np.allclose(self.estimate(again), self.x_hat, rtol=1e-6, atol=1e-9), (
-            "two fits with the same seed gave different estimates"
-        )
+        assert np.allclose(
+            self.estimate(again), self.x_hat, rtol=1e-6, atol=1e-9, equal_nan=True
+        ), "two fits with the same seed gave different estimates"
 
     def check_does_not_modify_inputs(self) -> None:
         """``estimate`` leaves its ``t``, ``y`` and ``u`` arguments untouched."""

@@ -1,8 +1,10 @@
 """Per-trajectory error metrics on the steady-state window (protocol section 5).
 
 All functions take ``x, x_hat: (batch, steps, n_x)`` and return one value per
-trajectory; a trajectory whose estimate holds NaN or inf anywhere is
-*diverged* and scores ``inf``.
+trajectory. A trajectory is *diverged* when its estimate holds NaN or inf anywhere, or
+when its NRMSE exceeds :data:`DIVERGENCE_NRMSE` (an error far beyond the states' own
+spread: finite but meaningless); a diverged trajectory scores ``inf`` on every metric
+(:func:`mark_diverged`), so it is counted and left out of every mean over the others.
 """
 
 from __future__ import annotations
@@ -26,6 +28,41 @@ def _steady(x: np.ndarray, x_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         )
     start = steady_state_start(x.shape[1])
     return x[:, start:], x_hat[:, start:]
+
+
+DIVERGENCE_NRMSE = 10.0
+"""A trajectory whose NRMSE exceeds this has diverged (protocol section 5): its error is ten
+times the spread of the test set's states, where an estimate frozen at the states' mean
+scores about 1."""
+DIVERGED_METRICS = ("rmse", "smape", "nrmse", "per_state_rmse", "settling_time_s")
+"""The per-trajectory metrics of a cell that a diverged trajectory scores ``inf`` on."""
+
+
+def beyond_bound(nrmse_values) -> np.ndarray:
+    """``(batch,)`` True where a trajectory's NRMSE is not at most :data:`DIVERGENCE_NRMSE`
+    (a non-finite one included)."""
+    return ~(np.asarray(nrmse_values, dtype=float) <= DIVERGENCE_NRMSE)
+
+
+def mark_diverged(metrics: dict) -> dict:
+    """``metrics`` (per-trajectory lists, :data:`DIVERGED_METRICS`, as a cell stores them)
+    with ``inf`` on every metric of each trajectory beyond the bound (:func:`beyond_bound`
+    of its ``nrmse``): the one place the divergence rule is applied to scored cells, new
+    and stored alike."""
+    if not len(metrics.get("nrmse", [])):
+        return metrics
+    out = beyond_bound(metrics["nrmse"])
+    if not out.any():
+        return metrics
+    marked = dict(metrics)
+    for name in DIVERGED_METRICS:
+        values = metrics.get(name)
+        if values is None or not len(values):
+            continue
+        values = np.asarray(values, dtype=float)
+        mask = out.reshape(-1, *([1] * (values.ndim - 1)))
+        marked[name] = np.where(mask, np.inf, values).tolist()
+    return marked
 
 
 def diverged(x_hat: np.ndarray) -> np.ndarray:
