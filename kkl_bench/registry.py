@@ -22,7 +22,7 @@ import contextlib
 import difflib
 import importlib.metadata
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -116,9 +116,7 @@ class Registry(Generic[T]):
     def _unknown_message(self, name: str) -> str:
         valid = self.names()
         message = f"unknown {self.kind} {name!r}; valid {self.kind}s: {', '.join(valid) or 'none'}"
-        close = difflib.get_close_matches(name, valid, n=1)
-        if close:
-            message += f" (did you mean {close[0]!r}?)"
+        message += did_you_mean(name, valid)
         if not valid:
             message += " (is kkl-bench installed? run `pip install -e .` in the checkout)"
         return message
@@ -140,6 +138,13 @@ class Registry(Generic[T]):
             self._failed[name] = reason
             raise PluginLoadError(f"{self.kind} {name!r} failed to load: {reason}") from error
         return self.register(name)(obj)
+
+
+def did_you_mean(name: str, valid: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` naming the closest of ``valid`` to ``name``, or ``""`` if
+    none is close: what every unknown-name error of kkl-bench ends with."""
+    close = difflib.get_close_matches(name, list(valid), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def _natural(name: str) -> list[tuple[int, int | str]]:

@@ -17,7 +17,7 @@ from kkl_bench.plants import logged_data
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.streams import PAPER_TRACK
-from kkl_bench.registry import estimators, systems
+from kkl_bench.registry import did_you_mean, estimators, systems
 from kkl_bench.task import Profile, Task
 from kkl_bench.tracks import Plant, TrackError, get_track
 from kkl_bench.training import TrainingData
@@ -67,7 +67,7 @@ class RunSpec:
                 if regime not in names:
                     raise TrackError(
                         f"unknown regime {regime!r} for track(s) {', '.join(self.tracks)}; "
-                        f"valid regimes: {', '.join(sorted(names))}"
+                        f"valid regimes: {', '.join(sorted(names))}{did_you_mean(regime, names)}"
                     )
         if not self.tasks():
             raise ValueError(

@@ -31,7 +31,7 @@ from kkl_bench.protocol import DT, PROTOCOL_VERSION
 from kkl_bench.protocol.metrics import state_scale
 from kkl_bench.protocol.simulate import Trajectories, sha256_of_arrays
 from kkl_bench.protocol.streams import PAPER_TRACK, draw_trajectory, root_seed, trajectory_rng
-from kkl_bench.registry import systems
+from kkl_bench.registry import did_you_mean, systems
 from kkl_bench.tracks import TaskDefinition, get_track
 
 
@@ -125,10 +125,14 @@ def load_profiles(text: str | None = None) -> dict[str, Profile]:
 
 
 def get_profile(name: str) -> Profile:
-    """The built-in profile ``name``; the error lists the valid ones."""
+    """The built-in profile ``name``; the error lists the valid ones and suggests the
+    closest."""
     profiles = load_profiles()
     if name not in profiles:
-        raise ProfileError(f"unknown profile {name!r}; valid profiles: {', '.join(profiles)}")
+        raise ProfileError(
+            f"unknown profile {name!r}; valid profiles: {', '.join(profiles)}"
+            f"{did_you_mean(name, profiles)}"
+        )
     return profiles[name]
 
 

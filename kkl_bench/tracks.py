@@ -48,19 +48,27 @@ import functools
 import importlib.resources
 import os
 import re
+import sys
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from kkl_bench.measurement import NOISE_LAWS, MeasurementModel, NoiseLaw, sensors, with_scale
+from kkl_bench.measurement import MeasurementModel, with_scale
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.signals import Regime
 from kkl_bench.protocol.streams import PAPER_TRACK
-from kkl_bench.registry import regimes, systems
+from kkl_bench.registry import did_you_mean, regimes, systems
+from kkl_bench.track_fields import (
+    Plant,
+    TrackError,
+    X0Box,
+    parse_measurement,
+    parse_number,
+    parse_plant,
+    parse_x0_box,
+)
 
 TRACKS_ENV = "KKL_BENCH_TRACKS"
 """Environment variable: more directories of track files, separated by ``:``."""
@@ -78,59 +86,6 @@ TASK_FIELDS = (
 """Fields every task (and ``[defaults]``, except name and family) may set; the rest go to the family."""
 _NAME = re.compile(r"[a-z0-9][a-z0-9-]*")
 _TASK_NAME = re.compile(r"[a-z0-9][a-z0-9_.-]*")
-
-
-class TrackError(ValueError):
-    """A track file is malformed; the message names the file, the task and the field."""
-
-
-@dataclass(frozen=True)
-class X0Box:
-    """Where initial states are drawn from: the system's box with its half-widths times
-    ``scale`` about its centre, or an explicit ``(system, low, high)`` box."""
-
-    scale: float = 1.0
-    explicit: tuple[tuple[str, tuple[float, ...], tuple[float, ...]], ...] = ()
-
-    def for_system(self, system: Any) -> tuple[np.ndarray, np.ndarray]:
-        """``(low, high)``, each ``(n_x,)``, for the system model ``system``."""
-        for name, low, high in self.explicit:
-            if name == system.name:
-                return np.array(low), np.array(high)
-        if self.scale == 1.0:
-            return system.x0_low, system.x0_high
-        centre = (system.x0_low + system.x0_high) / 2.0
-        half = self.scale * (system.x0_high - system.x0_low) / 2.0
-        return centre - half, centre + half
-
-
-@dataclass(frozen=True)
-class Plant:
-    """How the plant that makes a task's data differs from the nominal model every
-    estimator is given (protocol section 7.5; :mod:`kkl_bench.plants` builds it).
-
-    Attributes
-    ----------
-    parameters: relative parameter error; each physical parameter of the system is
-        multiplied by ``1 + parameters`` or ``1 - parameters``, the sign drawn once per
-        parameter from the track's pinned plant stream.
-    sensor_gain, sensor_offset: the plant measures ``sensor_gain h(x) + sensor_offset``
-        (plus the noise) where the model says ``h(x)``.
-    """
-
-    parameters: float = 0.0
-    sensor_gain: float = 1.0
-    sensor_offset: float = 0.0
-
-    @property
-    def nominal(self) -> bool:
-        """Whether this is the nominal model itself (every track but ``mismatch``)."""
-        return self == Plant()
-
-    @property
-    def key(self) -> str:
-        """The plant's name in stream keys, e.g. ``plant-p0.25-g1-o0``."""
-        return f"plant-p{self.parameters:g}-g{self.sensor_gain:g}-o{self.sensor_offset:g}"
 
 
 @dataclass(frozen=True)
@@ -157,8 +112,8 @@ class TaskDefinition:
     sigma_v: float = SIGMA_V
     sigma_w: float = SIGMA_W
     horizon: float = (N_SAMPLES - 1) * DT
-    x0_box: X0Box = X0Box()
-    plant: Plant = Plant()
+    x0_box: X0Box = X0Box()  # noqa: RUF009 (frozen: one shared default is safe)
+    plant: Plant = Plant()  # noqa: RUF009 (frozen)
     measurement: MeasurementModel | None = None
     """None: ``h(x)`` plus Gaussian noise of ``sigma_v`` at every sample."""
 
@@ -322,16 +277,6 @@ def _for_system(
     return resolved
 
 
-def _number(field: str, value: Any, positive: bool = False, signed: bool = False) -> float:
-    if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value):
-        raise TrackError(f"field {field!r} must be a number, got {value!r}")
-    if (value < 0 and not signed) or (positive and value == 0):
-        raise TrackError(
-            f"field {field!r} must be {'positive' if positive else 'non-negative'}, got {value!r}"
-        )
-    return float(value)
-
-
 def _task(name: str, entry: Mapping[str, Any], track_systems: tuple[str, ...]) -> TaskDefinition:
     """One task from its merged ``[defaults]`` and ``[[task]]`` fields."""
     family = entry.get("family")
@@ -365,121 +310,25 @@ def _task(name: str, entry: Mapping[str, Any], track_systems: tuple[str, ...]) -
         regime_class(**params)
     except ValueError as error:
         raise TrackError(f"family {family!r}: {error}") from None
-    horizon = _number("horizon", entry.get("horizon", (N_SAMPLES - 1) * DT), positive=True)
+    horizon = parse_number("horizon", entry.get("horizon", (N_SAMPLES - 1) * DT), positive=True)
     if abs(horizon / DT - round(horizon / DT)) > 1e-9:
         raise TrackError(f"field 'horizon' must be a whole number of {DT} s steps, got {horizon!r}")
     reference = entry.get("reference", family)
     if not isinstance(reference, str):
         raise TrackError(f"field 'reference' must be a task name, got {reference!r}")
-    sigma_v = _number("measurement_noise", entry.get("measurement_noise", SIGMA_V))
+    sigma_v = parse_number("measurement_noise", entry.get("measurement_noise", SIGMA_V))
     return TaskDefinition(
         name=name,
         family=family,
         params=tuple(sorted(params.items())),
         reference=reference,
         sigma_v=sigma_v,
-        sigma_w=_number("process_noise", entry.get("process_noise", SIGMA_W)),
+        sigma_w=parse_number("process_noise", entry.get("process_noise", SIGMA_W)),
         horizon=horizon,
-        x0_box=_x0_box(entry.get("x0_box", {}), track_systems),
-        plant=_plant(entry.get("plant", {})),
-        measurement=_measurement(entry.get("measurement", {}), sigma_v),
+        x0_box=parse_x0_box(entry.get("x0_box", {}), track_systems),
+        plant=parse_plant(entry.get("plant", {})),
+        measurement=parse_measurement(entry.get("measurement", {}), sigma_v),
     )
-
-
-_MEASUREMENT_FIELDS = (
-    "sensor",
-    "observe_every",
-    "noise",
-    "dof",
-    "outlier_fraction",
-    "outlier_scale",
-)
-
-
-def _measurement(value: Any, sigma_v: float) -> MeasurementModel:
-    """The task's measurement model from its ``measurement`` table (noise scale ``sigma_v``)."""
-    if not isinstance(value, dict):
-        raise TrackError(f"field 'measurement' must be a table, got {value!r}")
-    name = value.get("sensor", "identity")
-    if not isinstance(name, str) or name not in sensors:
-        raise TrackError(
-            f"field 'measurement.sensor': unknown sensor {name!r}; valid sensors: "
-            f"{', '.join(sensors.names())}"
-        )
-    sensor_class = sensors.get(name)
-    sensor_fields = [f.name for f in dataclasses.fields(sensor_class)]
-    sensor_params = {key: v for key, v in value.items() if key not in _MEASUREMENT_FIELDS}
-    unknown = sorted(set(sensor_params) - set(sensor_fields))
-    if unknown:
-        raise TrackError(
-            f"unknown field 'measurement.{unknown[0]}'; valid: "
-            f"{', '.join([*_MEASUREMENT_FIELDS, *sensor_fields])} (sensor {name!r} takes "
-            f"{', '.join(sensor_fields) or 'no parameters'})"
-        )
-    law = value.get("noise", "gaussian")
-    if law not in NOISE_LAWS:
-        raise TrackError(
-            f"field 'measurement.noise': unknown law {law!r}; valid laws: {', '.join(NOISE_LAWS)}"
-        )
-    law_params = {
-        key: _number(f"measurement.{key}", value[key])
-        for key in ("dof", "outlier_fraction", "outlier_scale")
-        if key in value
-    }
-    every = value.get("observe_every", 1)
-    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
-        raise TrackError(
-            f"field 'measurement.observe_every' must be a positive integer, got {every!r}"
-        )
-    try:
-        sensor = sensor_class(
-            **{key: _number(f"measurement.{key}", v) for key, v in sensor_params.items()}
-        )
-        return MeasurementModel(sensor, every, NoiseLaw(law, sigma_v, **law_params))
-    except ValueError as error:
-        raise TrackError(f"field 'measurement': {error}") from None
-
-
-def _plant(value: Any) -> Plant:
-    if not isinstance(value, dict):
-        raise TrackError(f"field 'plant' must be a table, got {value!r}")
-    fields = [f.name for f in dataclasses.fields(Plant)]
-    unknown = sorted(set(value) - set(fields))
-    if unknown:
-        raise TrackError(f"unknown field 'plant.{unknown[0]}'; valid: {', '.join(fields)}")
-    plant = Plant(
-        **{key: _number(f"plant.{key}", value[key], signed=key == "sensor_offset") for key in value}
-    )
-    if plant.parameters >= 1.0:
-        raise TrackError(f"field 'plant.parameters' must be below 1, got {plant.parameters!r}")
-    if plant.sensor_gain == 0.0:
-        raise TrackError("field 'plant.sensor_gain' must not be 0")
-    return plant
-
-
-def _x0_box(value: Any, track_systems: tuple[str, ...]) -> X0Box:
-    if not isinstance(value, dict):
-        raise TrackError(f"field 'x0_box' must be a table, got {value!r}")
-    scale = _number("x0_box.scale", value.get("scale", 1.0), positive=True)
-    explicit = []
-    for system, box in value.items():
-        if system == "scale":
-            continue
-        if system not in track_systems:
-            raise TrackError(
-                f"field 'x0_box.{system}': not a system of this track ({', '.join(track_systems)})"
-            )
-        n_x = systems.get(system)().n_x
-        if not isinstance(box, dict) or set(box) != {"low", "high"}:
-            raise TrackError(f"field 'x0_box.{system}' must set exactly low and high")
-        low, high = (np.asarray(box[k], dtype=float) for k in ("low", "high"))
-        if low.shape != (n_x,) or high.shape != (n_x,) or np.any(low > high):
-            raise TrackError(
-                f"field 'x0_box.{system}': low and high must be {n_x} numbers with low <= high, "
-                f"got {box['low']!r} and {box['high']!r}"
-            )
-        explicit.append((system, tuple(low.tolist()), tuple(high.tolist())))
-    return X0Box(scale, tuple(explicit))
 
 
 def _track_files() -> list[tuple[str, str]]:
@@ -499,38 +348,59 @@ def _track_files() -> list[tuple[str, str]]:
 
 
 @functools.cache
-def _load(environment: str) -> dict[str, Track]:
+def _load(environment: str) -> tuple[dict[str, Track], dict[str, str]]:
+    """The tracks that parse, by name, and the broken track files: source -> reason. A
+    broken file (not valid TOML, a field missing or wrong, a name already declared, a
+    reference that is no paper task) is named once on stderr and skipped; the others load."""
     loaded: dict[str, Track] = {}
+    broken: dict[str, str] = {}
     for source, text in _track_files():
-        track = parse_track(text, source)
+        try:
+            track = parse_track(text, source)
+        except TrackError as error:
+            broken[source] = str(error)
+            continue
         if track.name in loaded:
-            raise TrackError(
+            broken[source] = (
                 f"{source}: track {track.name!r} is already declared in {loaded[track.name].source}"
             )
+            continue
         loaded[track.name] = track
     if PAPER_TRACK in loaded:  # the default track first, then the others by file name
         loaded = {PAPER_TRACK: loaded[PAPER_TRACK], **loaded}
     paper = loaded.get(PAPER_TRACK)
-    for track in loaded.values():
+    for name, track in list(loaded.items()):
         for task in track.tasks:
             if paper is not None and task.reference not in paper.task_names():
-                raise TrackError(
+                broken[track.source] = (
                     f"{track.source}: task {task.name!r}, field 'reference': {task.reference!r} "
                     f"is not a task of the paper track ({', '.join(paper.task_names())})"
                 )
-    return loaded
+                del loaded[name]
+                break
+    for reason in broken.values():
+        print(f"kkl-bench: warning: skipped a broken track file: {reason}", file=sys.stderr)
+    return loaded, broken
 
 
 def load_tracks() -> dict[str, Track]:
-    """Every track by name, built-in first (read once per ``$KKL_BENCH_TRACKS`` value)."""
-    return _load(os.environ.get(TRACKS_ENV, ""))
+    """Every track that loads, by name, built-in first (read once per ``$KKL_BENCH_TRACKS``
+    value); broken track files are left out (:func:`broken_tracks`)."""
+    return _load(os.environ.get(TRACKS_ENV, ""))[0]
+
+
+def broken_tracks() -> dict[str, str]:
+    """The track files that did not load: source -> reason."""
+    return _load(os.environ.get(TRACKS_ENV, ""))[1]
 
 
 def get_track(name: str) -> Track:
-    """The track ``name``; the error lists the valid ones."""
+    """The track ``name``; the error lists the valid ones and suggests the closest."""
     tracks = load_tracks()
     if name not in tracks:
-        raise TrackError(f"unknown track {name!r}; valid tracks: {', '.join(tracks)}")
+        raise TrackError(
+            f"unknown track {name!r}; valid tracks: {', '.join(tracks)}{did_you_mean(name, tracks)}"
+        )
     return tracks[name]
 
 

@@ -14,7 +14,7 @@ import ast
 import re
 
 from kkl_bench.estimator import Estimator
-from kkl_bench.registry import estimators
+from kkl_bench.registry import did_you_mean, estimators
 
 _NAME = re.compile(r"^(?P<base>[^\[\]]+)(\[(?P<params>.*)\])?$")
 
@@ -54,7 +54,7 @@ def parse(name: str) -> tuple[str, dict]:
     if unknown:
         raise VariantError(
             f"{base} has no hyperparameter {', '.join(map(repr, unknown))}; "
-            f"valid: {', '.join(valid) or 'none'}"
+            f"valid: {', '.join(valid) or 'none'}{did_you_mean(unknown[0], valid)}"
         )
     return base, params
 

@@ -296,3 +296,20 @@ def test_a_bad_variant_value_is_an_error_before_any_work(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "enkf: n=-3 must be an integer of at least 2" in captured.err
     assert "kkl-bench:" not in captured.out and not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("arguments", "suggestion"),
+    [
+        (["--estimator", "ekff"], "'ekf'"),
+        (["--estimator", "ekf", "--system", "duffng"], "'duffing'"),
+        (["--estimator", "ekf", "--regime", "sqare"], "'square'"),
+        (["--estimator", "ekf", "--track", "hrad"], "'hard'"),
+        (["--estimator", "ekf", "--profile", "quik"], "'quick'"),
+        (["--estimator", "ekf[inflaton=1.1]"], "'inflation'"),
+    ],
+)
+def test_every_unknown_name_gets_a_suggestion(arguments, suggestion, tmp_path, capsys):
+    assert main(["run", *arguments, "--results", str(tmp_path)]) == 2
+    assert f"(did you mean {suggestion}?)" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # refused before any work

@@ -14,7 +14,7 @@ from kkl_bench.measurement import sensors
 from kkl_bench.registry import estimators, regimes, systems
 from kkl_bench.task import Task, load_profiles
 from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
-from kkl_bench.tracks import get_track, load_tracks
+from kkl_bench.tracks import broken_tracks, get_track, load_tracks
 
 
 def add_parser(commands) -> None:
@@ -69,6 +69,8 @@ def list_everything(args: argparse.Namespace) -> int:
         print(f"{registry.kind}s: {', '.join(listed)}")
         for name, reason in broken.items():
             print(f"  BROKEN {registry.kind} {name} (not usable): {reason}")
+    for source, reason in broken_tracks().items():
+        print(f"  BROKEN track file {source} (not usable): {reason}")
     for track in load_tracks().values():
         print(
             f"track {track.name}@v{track.version} ({len(track.tasks)} tasks x "
