@@ -57,7 +57,8 @@ class ExtendedKalman(KalmanBaseline):
         ``"huber"`` or ``"none"``.
     threshold: Huber's ``c`` in predicted standard deviations, or None (default): chosen on
         validation trajectories.
-    quantizer: ``"noise"`` (default: a quantizer read as additive noise) or ``"in-model"``.
+    quantizer: ``"auto"`` (default: chosen on validation trajectories), ``"noise"`` (a
+        quantizer read as additive noise) or ``"in-model"``.
     engine: ``"compiled"`` or ``"reference"`` (filterpy).
     """
 
@@ -68,7 +69,7 @@ class ExtendedKalman(KalmanBaseline):
         inflation: float | None = None,
         robust: str = "auto",
         threshold: float | None = None,
-        quantizer: str = "noise",
+        quantizer: str = "auto",
         engine: str = "reference",
     ) -> None:
         self.inflation = inflation
@@ -95,7 +96,8 @@ class ExtendedKalman(KalmanBaseline):
         )  # fmt: skip
 
     def make_filter(self, settings, dt):
-        kalman_filter = _RK4ExtendedKalmanFilter(self.system_, dt, settings["inflation"])
+        system = self.filter_system(settings)
+        kalman_filter = _RK4ExtendedKalmanFilter(system, dt, settings["inflation"])
         kalman_filter.x, kalman_filter.P, kalman_filter.Q = self.prior()
         kalman_filter.x = kalman_filter.x[:, None].copy()
         kalman_filter.R = self.R_

@@ -21,9 +21,10 @@ member is then propagated by the protocol's transition: the RK4 step with the he
 process noise ``N(0, sigma_w^2 I)`` and the system's constraint, as the truth
 is. A sample whose measurement is missing (NaN) is a forecast only. On a task with
 another measurement model the members are read through its sensor (``system.h``),
-but for a quantizer, which is read as additive noise by default (``quantizer='noise'``:
-``h`` without it; ``'in-model'`` keeps it in ``h``, where members that share one
-quantization cell predict one measurement and the update vanishes), and ``R`` is the
+but for a quantizer, which may be read as additive noise (``quantizer='noise'``: ``h``
+without it; ``'in-model'`` keeps it in ``h``, where members that share one quantization
+cell predict one measurement and the update vanishes; ``'auto'``, the default, chooses
+between the two with the inflation), and ``R`` is the
 noise law's variance (plus a quantizer's ``step^2 / 12``). The analysis stays the
 Gaussian one under heavy-tailed noise (the robust update is the EKF's and the UKF's,
 ``kkl_bench.estimators.kalman``).
@@ -40,7 +41,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from kkl_bench.estimators.kalman import QUANTIZERS, check_choice
+from kkl_bench.estimators.kalman import QUANTIZERS, check_choice, quantizer_treatments
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 
 from kkl_bench.calibration import CalibratesOnLoggedData
@@ -157,7 +158,8 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         of the Gaspari-Cohn taper of a local analysis per site (the LETKF,
         :func:`local_transform`; measurements 2 half-widths away or more are ignored);
         only on systems that declare a ring (``System.ring``).
-    quantizer: ``"noise"`` (default: a quantizer read as additive noise) or ``"in-model"``.
+    quantizer: ``"auto"`` (default: chosen on validation trajectories), ``"noise"`` (a
+        quantizer read as additive noise) or ``"in-model"``.
     """
 
     name = "enkf"
@@ -169,7 +171,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         n: int = 24,
         inflation: float | None = None,
         localization: float | None = None,
-        quantizer: str = "noise",
+        quantizer: str = "auto",
     ) -> None:
         self.n = n
         self.inflation = inflation
@@ -205,23 +207,35 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             if self.localization is None
             else LocalTaper.of(ring_taper(context.system.ring, self.localization))
         )
-        self.system_ = (
-            filter_system(context.system, context.measurement)
-            if self.quantizer == "noise"
+        systems_ = {
+            treatment: filter_system(context.system, context.measurement)
+            if treatment == "noise"
             else context.system
+            for treatment in quantizer_treatments(self.quantizer, context.measurement)
+        }
+        treatments = (
+            [{"quantizer": q} for q in systems_]
+            if context.measurement.sensor.reads_as_noise
+            else [{}]
         )
+        inflations = INFLATIONS if self.inflation is None else (self.inflation,)
+        candidates = [{**t, "inflation": a} for t in treatments for a in inflations]
+
+        def choose_setting(setting):
+            self.system_ = systems_[setting.get("quantizer", "in-model")]
+            self.inflation_ = setting["inflation"]
+
         self.scores_ = {}
-        self.inflation_ = self.inflation
-        if self.inflation is None:
+        self.setting_ = candidates[0]
+        if len(candidates) > 1:
 
             def estimate(setting, data):
-                self.inflation_ = setting["inflation"]
+                choose_setting(setting)
                 return self.estimate(data.t, data.y, data.u)
 
-            candidates = [{"inflation": value} for value in INFLATIONS]
             data = validation_data(context.training, "enkf/validation")
-            best, self.scores_ = choose(candidates, estimate, data)
-            self.inflation_ = best["inflation"]
+            self.setting_, self.scores_ = choose(candidates, estimate, data)
+        choose_setting(self.setting_)
         return self
 
     def fit_report(self):
@@ -231,11 +245,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             **({"localization": self.localization} if self.localization is not None else {}),
             "inflation": self.inflation_,
             **({"selection": self.scores_} if self.scores_ else {}),
-            **(
-                {"quantizer": self.quantizer}
-                if self.check_fitted().measurement.sensor.reads_as_noise
-                else {}
-            ),
+            **({"quantizer": self.setting_["quantizer"]} if "quantizer" in self.setting_ else {}),
         }
 
     def flops_per_step(self) -> float:

@@ -13,10 +13,10 @@ track) each filter is built for the task's sensor, as the literature builds it
 (protocol 7.6):
 
 * it updates only where ``y`` is present;
-* a quantizer is read as additive uniform noise (``quantizer='noise'``, the default):
-  ``h`` without the quantizer, ``R`` plus ``step^2 / 12``; ``quantizer='in-model'``
-  keeps the quantizer in ``h`` (under which the UKF's sigma points often share one
-  quantization cell and the gain vanishes);
+* a quantizer is read as additive uniform noise (``quantizer='noise'``: ``h`` without
+  the quantizer, ``R`` plus ``step^2 / 12``) or kept in ``h`` (``'in-model'``, under
+  which the UKF's sigma points often share one quantization cell and the gain
+  vanishes); ``'auto'``, the default, chooses between the two;
 * under a heavy-tailed noise law (``robust='auto'``, the default; ``'huber'`` always,
   ``'none'`` never) the update is Huber's: ``R`` is the inliers' variance
   (:attr:`~kkl_bench.measurement.MeasurementModel.inlier_variance`) and each output's
@@ -26,7 +26,8 @@ track) each filter is built for the task's sensor, as the literature builds it
 * the propagated covariance is inflated, ``P = a F P F^T + Q``, by ``inflation``, or by
   an ``a`` chosen from :data:`INFLATIONS`.
 
-Choices left open (``threshold=None``, ``inflation=None``) are made per fit on
+Choices left open (``quantizer='auto'``, ``threshold=None``, ``inflation=None``) are made
+per fit on
 validation trajectories of the training stream (:mod:`kkl_bench.tuning`), never a test
 stream, and recorded in the fit report; on the protocol's measurement model the filter
 is the plain one (inflation 1, no robust update), so the paper's cells are unchanged.
@@ -55,6 +56,7 @@ from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.measurement import filter_system
 from kkl_bench.protocol.compiled import CompiledModel
+from kkl_bench.protocol.system import System
 from kkl_bench.tuning import choose, validation_data
 
 ENGINES = ("compiled", "reference")
@@ -62,8 +64,9 @@ ENGINES = ("compiled", "reference")
 ROBUST = ("auto", "huber", "none")
 """The update a filter makes (``robust=``): Huber's where the noise law is heavy-tailed,
 always, or never."""
-QUANTIZERS = ("noise", "in-model")
-"""How a filter reads a quantizer (``quantizer=``): as additive noise, or inside ``h``."""
+QUANTIZERS = ("auto", "noise", "in-model")
+"""How a filter reads a quantizer (``quantizer=``): as additive noise, inside ``h``, or
+(``auto``) the one of the two that does better on validation streams."""
 THRESHOLDS = (0.5, 1.0, 1.345, 2.0, 3.0)
 """Huber thresholds ``c`` (in predicted standard deviations) a robust filter chooses from;
 1.345 is Huber's classical choice (95 % efficiency under Gaussian noise)."""
@@ -95,6 +98,16 @@ def check_design(owner: str, robust, threshold, inflation, quantizer, engine) ->
         raise ValueError(
             f"{owner}: inflation={inflation!r} must be a number of at least 1, or None"
         )
+
+
+def quantizer_treatments(quantizer: str, measurement) -> tuple[str, ...]:
+    """The treatments of the task's quantizer a filter asked for ``quantizer`` considers:
+    ``("in-model",)`` (the sensor in ``h``, as every other sensor) unless the sensor reads
+    as noise (:attr:`~kkl_bench.measurement.Sensor.reads_as_noise`); then the one asked
+    for, or both for ``"auto"``."""
+    if not measurement.sensor.reads_as_noise:
+        return ("in-model",)
+    return ("noise", "in-model") if quantizer == "auto" else (quantizer,)
 
 
 def huber_noise(R: np.ndarray, residual: np.ndarray, S: np.ndarray, threshold: float) -> np.ndarray:
@@ -144,32 +157,44 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
         super().fit(context)
         fitted = self.check_fitted()
         measurement = fitted.measurement
-        reads_as_noise = self.quantizer == "noise"
-        self.system_ = (
-            filter_system(fitted.system, measurement) if reads_as_noise else fitted.system
-        )
+        self.systems_ = {
+            treatment: filter_system(fitted.system, measurement)
+            if treatment == "noise"
+            else fitted.system
+            for treatment in quantizer_treatments(self.quantizer, measurement)
+        }
         robust = self.robust == "huber" or (
             self.robust == "auto" and not measurement.noise.gaussian
         )
         variance = measurement.inlier_variance if robust else measurement.variance
         self.R_ = variance * np.eye(fitted.system.n_y)
-        compiled = self.system_.compiled()
-        self.model_ = compiled if self.engine == "compiled" else None
-        candidates = self.candidates(robust, plain=not measurement.features)
+        candidates = self.candidates(
+            robust, plain=not measurement.features, quantized=measurement.sensor.reads_as_noise
+        )
         self.selection_ = {}
         self.settings_ = candidates[0]
         if len(candidates) > 1:
             self.settings_, self.selection_ = choose(
                 candidates,
-                lambda settings, data: self.run(compiled, settings, data.t, data.y, data.u),
+                lambda settings, data: self.run(
+                    self.filter_system(settings).compiled(), settings, data.t, data.y, data.u
+                ),
                 validation_data(fitted.training, VALIDATION_STREAM),
             )
+        self.system_ = self.filter_system(self.settings_)
+        self.model_ = self.system_.compiled() if self.engine == "compiled" else None
         return self
 
-    def candidates(self, robust: bool, plain: bool) -> list[dict[str, float]]:
-        """The settings to choose from: ``threshold`` (infinite unless ``robust``) and
-        ``inflation``, each the one given or, where None, the grid (an inflation of 1 on the
-        protocol's measurement model, ``plain``)."""
+    def filter_system(self, settings: dict) -> System:
+        """The model the filter runs with ``settings``: the task's, or without a quantizer
+        read as noise."""
+        return self.systems_[settings.get("quantizer", "in-model")]
+
+    def candidates(self, robust: bool, plain: bool, quantized: bool) -> list[dict[str, Any]]:
+        """The settings to choose from: the quantizer's treatment (only where the sensor
+        reads as noise, ``quantized``), ``threshold`` (infinite unless ``robust``) and ``inflation``, each
+        the one given or, where left open, the grid (an inflation of 1 on the protocol's
+        measurement model, ``plain``)."""
         if not robust:
             thresholds = (math.inf,)
         else:
@@ -178,7 +203,13 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
             inflations = (float(self.inflation),)
         else:
             inflations = (1.0,) if plain else INFLATIONS
-        return [{"threshold": c, "inflation": a} for c in thresholds for a in inflations]
+        treatments = [{"quantizer": q} for q in self.systems_] if quantized else [{}]
+        return [
+            {**treatment, "threshold": c, "inflation": a}
+            for treatment in treatments
+            for c in thresholds
+            for a in inflations
+        ]
 
     @property
     def engine_used(self) -> str:
@@ -196,7 +227,11 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
             **({"huber_threshold": threshold} if math.isfinite(threshold) else {}),
             "inflation": self.settings_["inflation"],
             "noise_variance": float(self.R_[0, 0]),
-            **({"quantizer": self.quantizer} if context.measurement.sensor.reads_as_noise else {}),
+            **(
+                {"quantizer": self.settings_.get("quantizer", "in-model")}
+                if context.measurement.sensor.reads_as_noise
+                else {}
+            ),
             **({"selection": self.selection_} if self.selection_ else {}),
         }
 

@@ -48,8 +48,9 @@ class UnscentedKalman(KalmanBaseline):
         ``"huber"`` or ``"none"``.
     threshold: Huber's ``c`` in predicted standard deviations, or None (default): chosen on
         validation trajectories.
-    quantizer: ``"noise"`` (default: a quantizer read as additive noise, outside the sigma
-        points) or ``"in-model"`` (inside them).
+    quantizer: ``"auto"`` (default: chosen on validation trajectories), ``"noise"`` (a
+        quantizer read as additive noise, outside the sigma points) or ``"in-model"``
+        (inside them).
     engine: ``"compiled"`` or ``"reference"`` (filterpy).
     """
 
@@ -63,7 +64,7 @@ class UnscentedKalman(KalmanBaseline):
         inflation: float | None = None,
         robust: str = "auto",
         threshold: float | None = None,
-        quantizer: str = "noise",
+        quantizer: str = "auto",
         engine: str = "reference",
     ) -> None:
         self.alpha = alpha
@@ -105,7 +106,7 @@ class UnscentedKalman(KalmanBaseline):
         )  # fmt: skip
 
     def make_filter(self, settings, dt):
-        system = self.system_
+        system = self.filter_system(settings)
         points = self.points(system.n_x)
         kalman_filter = _BatchedSigmaUKF(
             dim_x=system.n_x,

@@ -37,8 +37,12 @@ def validation_error(x_hat: np.ndarray, x: np.ndarray) -> float:
 
 
 def label(setting: dict[str, Any]) -> str:
-    """``{"threshold": 1.345, "inflation": 1.0}`` -> ``"threshold=1.345,inflation=1"``."""
-    return ",".join(f"{key}={value:g}" for key, value in setting.items())
+    """``{"threshold": 1.345, "inflation": 1.0}`` -> ``"threshold=1.345,inflation=1"``
+    (text values as they are)."""
+    return ",".join(
+        f"{key}={value}" if isinstance(value, str) else f"{key}={value:g}"
+        for key, value in setting.items()
+    )
 
 
 def choose(

@@ -205,7 +205,7 @@ def test_variant_names_are_canonical_and_stored_under_their_own_name(tmp_path, c
         "inflation": None,
         "robust": "auto",
         "threshold": None,
-        "quantizer": "noise",
+        "quantizer": "auto",
         "engine": "reference",
     }
     assert main(["check", "ukf[alpha=0.3]", "--system", "vdp"]) == 0

@@ -94,10 +94,21 @@ def test_under_outliers_the_update_is_hubers_with_settings_chosen_on_validation(
 def test_the_ukf_reading_the_quantizer_as_noise_beats_the_one_with_it_inside(tmp_path):
     run_spec = spec(tmp_path, "hard")
     task = task_named(run_spec, "vdp", "quantized-sinusoid")
-    as_noise = fitted(run_spec, "ukf[inflation=1.0]", task)
+    as_noise = fitted(run_spec, "ukf[inflation=1.0,quantizer='noise']", task)
     inside = fitted(run_spec, "ukf[inflation=1.0,quantizer='in-model']", task)
     assert as_noise.fit_report()["quantizer"] == "noise"
     assert rmse(as_noise, task) < 0.5 * rmse(inside, task)
+
+
+@pytest.mark.parametrize("name", ["ekf", "enkf[inflation=1.0]"])
+def test_by_default_the_quantizers_treatment_is_chosen_on_validation(name, tmp_path):
+    run_spec = spec(tmp_path, "hard")
+    estimator = fitted(run_spec, name, task_named(run_spec, "duffing", "quantized-square"))
+    report = estimator.fit_report()
+    scores = report["selection"]
+    assert {key.split(",")[0] for key in scores} == {"quantizer=noise", "quantizer=in-model"}
+    best = min(scores, key=scores.get)
+    assert best.startswith(f"quantizer={report['quantizer']},")
 
 
 @pytest.mark.parametrize("name", ["ekf", "ukf"])
@@ -119,8 +130,8 @@ def test_the_propagation_applies_the_systems_constraint(name, tmp_path):
     ("row", "message"),
     [
         ("ekf[robust='tukey']", r"robust='tukey'; valid: auto, huber, none"),
-        ("ukf[quantizer='dither']", r"quantizer='dither'; valid: noise, in-model"),
-        ("enkf[quantizer='dither']", r"quantizer='dither'; valid: noise, in-model"),
+        ("ukf[quantizer='dither']", r"quantizer='dither'; valid: auto, noise, in-model"),
+        ("enkf[quantizer='dither']", r"quantizer='dither'; valid: auto, noise, in-model"),
         ("ekf[threshold=-1]", r"threshold=-1 must be a positive number, or None"),
         ("ukf[inflation=0.5]", r"inflation=0.5 must be a number of at least 1, or None"),
     ],
