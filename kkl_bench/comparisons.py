@@ -20,6 +20,7 @@ from kkl_bench.summary import (
     in_paper_order,
     task_order,
 )
+from kkl_bench.tracks import find_track
 
 COMPARISON_COLUMNS = (
     "cell",
@@ -122,6 +123,22 @@ def particle_count(row: str) -> int | None:
     return estimator.n
 
 
+def _nominal_plant(summary: pd.DataFrame) -> pd.Series:
+    """Per row of ``summary``: whether its task's data come from the nominal model (True
+    where the track or task is not known here)."""
+
+    def nominal(track: str, regime: str) -> bool:
+        definition = find_track(track)
+        if definition is None or regime not in definition.task_names():
+            return True
+        return definition.task(regime).plant.nominal
+
+    tracks = summary["track"] if "track" in summary else pd.Series("paper", summary.index)
+    return pd.Series(
+        [nominal(t, r) for t, r in zip(tracks, summary["regime"], strict=True)], summary.index
+    )
+
+
 def limit_rows(summary: pd.DataFrame) -> pd.DataFrame:
     """Per cell (index ``system, regime``) of ``summary`` where a limit was scored: the row
     that stands for the Bayes limit (``row``) and its mean RMSE (``rmse``). The
@@ -129,9 +146,11 @@ def limit_rows(summary: pd.DataFrame) -> pd.DataFrame:
     were fitted with); else the particle filter with the most particles scored in the
     cell, at least :data:`LIMIT`'s (protocol section 6.1: a cell where doubling the
     particles moves the RMSE by more than 2 % is scored with more). Rows whose mean is
-    not finite (a diverged trajectory) are left out."""
+    not finite (a diverged trajectory) are left out, and so are cells whose data come
+    from a plant unlike the model the particle filter is given (``mismatch``): there it
+    is no limit."""
     ours = summary[(summary["status"] == "ok") & ~summary["estimator"].str.startswith(PAPER_PREFIX)]
-    finite = ours[np.isfinite(ours["rmse_mean"])]
+    finite = ours[np.isfinite(ours["rmse_mean"]) & _nominal_plant(ours)]
     least = particle_count(LIMIT)
 
     def rank(row: str) -> float:
@@ -235,7 +254,7 @@ def headroom_sentence(summary: pd.DataFrame) -> str:
     return (
         f"The best model-based row is at least {HEADROOM:g} times the limit in {count} of "
         f"{len(frame)} cells"
-        + (f" (median {ratios.median():.3g} times)." if ratios.notna().any() else ".")
+        + (f" (median {ratios.median():.2f} times)." if ratios.notna().any() else ".")
     )
 
 
@@ -263,7 +282,7 @@ def one_line_answer(summary: pd.DataFrame) -> str:
     if frame.empty:
         return text + "."
     medians = [
-        f"the best {family} row {frame[column].median():.3g} times"
+        f"the best {family} row {frame[column].median():.2f} times"
         for family, column in (
             ("model-based", "best_model_based_ratio"),
             ("learned", "best_learned_ratio"),

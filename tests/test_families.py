@@ -133,5 +133,5 @@ def test_the_headroom_sentence_counts_cells_where_the_best_model_based_row_is_fa
     )
     assert comparisons.headroom_sentence(summary) == (
         "The best model-based row is at least 1.3 times the limit in 1 of 2 cells "
-        "(median 1.6 times)."
+        "(median 1.60 times)."
     )
