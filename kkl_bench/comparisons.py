@@ -277,7 +277,8 @@ def one_line_answer(summary: pd.DataFrame) -> str:
     leaders = ", ".join(f"`{row}` in {count}" for row, count in counts.head(3).items())
     text = f"Lowest RMSE of the {cells} cells (the limit aside): {leaders}"
     if len(counts) > 3:
-        text += f", {len(counts) - 3} other rows in {int(counts.iloc[3:].sum())}"
+        others = len(counts) - 3
+        text += f", {others} other row{'s' if others > 1 else ''} in {int(counts.iloc[3:].sum())}"
     frame = limit_frame(summary)
     if frame.empty:
         return text + "."
