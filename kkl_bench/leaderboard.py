@@ -56,7 +56,7 @@ def _format_cell(row: pd.Series, markup: dict[str, tuple[str, str]]) -> str:
         return "unsupported" if row["status"] == "unsupported" else "error"
     if row["n_diverged"]:
         return (
-            f"diverged ({row['n_diverged']}/{row['n_test'] * row['n_seeds']}), "
+            f"diverged ({int(row['n_diverged'])}/{int(row['n_test'] * row['n_seeds'])}), "
             f"median {row['rmse_median']:.3g}"
         )
     rmse = f"{row['rmse_mean']:.3g}"
