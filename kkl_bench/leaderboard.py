@@ -100,7 +100,8 @@ def _grid(
     """Header, rows and the (system, regime) of each column (None for the others) of one
     table over ``systems`` x ``regimes``; ``escape`` quotes labels.
 
-    With ``settling``, every RMSE column is followed by a settling-time column.
+    With ``settling``, every RMSE column is followed by a settling-time column. A row with
+    no cell in the table is left out.
     """
     estimators = list(dict.fromkeys(summary["estimator"]))
     indexed = summary.set_index(["estimator", "system", "regime"])
@@ -116,6 +117,8 @@ def _grid(
                 cells.append(None)
     rows = []
     for estimator in estimators:
+        if not any((estimator, *cell) in indexed.index for cell in cells if cell):
+            continue  # no cell in this table (a row run on other systems only)
         own = summary[summary["estimator"] == estimator]
         row = [escape(estimator), _seeds(own)]
         for system in systems:

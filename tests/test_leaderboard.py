@@ -9,7 +9,7 @@ import pytest
 
 from kkl_bench import comparisons
 from kkl_bench.comparisons import limit_frame
-from kkl_bench.leaderboard import render, track_summary_table
+from kkl_bench.leaderboard import grid_tables, render, track_summary_table
 from kkl_bench.report.markdown import table
 from kkl_bench.significance import mark_column, ratio_lower_bound
 from kkl_bench.summary import paper_results, summary_table, track_summary, unsupported_reasons
@@ -392,3 +392,12 @@ def test_unsupported_reasons_name_each_reason_once_with_its_systems():
         ("pf", ["lorenz96-n160"], "too big: 160"),
         ("ring", ["fitzhugh_nagumo", "chua"], "no ring"),
     ]
+
+
+def test_a_row_with_no_cell_in_a_table_is_left_out_of_it():
+    frame = results_frame()
+    only_vdp = frame[(frame["estimator"] == "good") & (frame["system"] == "vdp")]
+    summary = summary_table(pd.concat([frame, only_vdp.assign(estimator="vdp_only")]))
+    tables = grid_tables(summary, systems_per_table=1)
+    rows = {table.columns["c2"]: list(table.frame["c0"]) for table in tables}
+    assert "vdp_only" in rows["Van der Pol Zero"] and "vdp_only" not in rows["Duffing Zero"]
