@@ -248,6 +248,12 @@ def test_the_page_leads_with_the_board_switches_tracks_sorts_and_filters_in_a_br
         driver.find_element(By.XPATH, "//table[@id='track-far-init']//th[text()='RMSE']").click()
         sorted_rmse = [float(v) for v in column("track-far-init", "RMSE")]
         assert sorted_rmse == sorted(sorted_rmse) and len(sorted_rmse) > 1
+        # the panel answers first, and its heat map spans the page (legible at 1400 px)
+        panel = driver.find_element(By.CSS_SELECTOR, 'div.panel[data-tab="far-init"]')
+        assert panel.find_element(By.TAG_NAME, "p").text.startswith("In one line.")
+        heat_map = panel.find_element(By.CSS_SELECTOR, ".wide img")
+        assert heat_map.get_attribute("src").endswith("figures/relative-rmse-far-init.svg")
+        assert heat_map.size["width"] >= 1000
         assert [e for e in driver.get_log("browser") if e["level"] == "SEVERE"] == []
         driver.save_screenshot(str(tmp_path / "leaderboard-page.png"))
         assert (tmp_path / "leaderboard-page.png").stat().st_size > 10_000

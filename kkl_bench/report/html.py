@@ -130,14 +130,19 @@ def block(item) -> str:
 
 
 def section(part: Section) -> str:
-    """A section; its figures stand beside its tables where the page is wide enough."""
+    """A section; the figures of one cell (a system's trajectory) stand beside its tables
+    where the page is wide enough, every other figure (a heat map over all cells, a
+    scaling plot) below them at the page's full width, so that its labels stay legible."""
     blocks = shown(part.blocks, HTML)
-    figures = [item for item in blocks if isinstance(item, Figure)]
+    figures = [item for item in blocks if isinstance(item, Figure) and item.system]
+    wide = [item for item in blocks if isinstance(item, Figure) and not item.system]
     others = [block(item) for item in blocks if not isinstance(item, Figure)]
     body = "\n".join(others)
     if figures:
         pictures = "\n".join(map(block, figures))
         body = f'<div class="beside"><div class="main">{body}</div><div class="figures">{pictures}</div></div>'
+    if wide:
+        body += '\n<div class="wide">' + "\n".join(map(block, wide)) + "</div>"
     title = inline(html.escape(part.title))
     if part.folded:
         return f"<details>\n<summary>{title}</summary>\n{body}\n</details>"
@@ -210,7 +215,7 @@ button.tab.active { background: #2b5797; color: #fff; border-color: #2b5797; }
 .controls { margin: 0.6rem 0; } .controls label { margin-right: 1rem; } .hint { color: #666; }
 .beside { display: flex; flex-wrap: wrap; gap: 1rem; align-items: flex-start; }
 .beside .main { flex: 1 1 900px; min-width: 0; overflow-x: auto; } .beside .figures { flex: 1 1 400px; }
-img { max-width: 100%; } figure { margin: 0 0 1rem; }
+img { max-width: 100%; } figure { margin: 0 0 1rem; } .wide img { width: 100%; }
 pre { background: #f4f4f4; padding: 0.6rem; overflow-x: auto; }
 details { margin: 0.5rem 0; } details summary { cursor: pointer; font-weight: 600; font-size: 1.1rem; }
 """
