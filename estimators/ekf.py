@@ -8,7 +8,7 @@ import math
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from kkl_bench.estimators import kalman_kernels
-from kkl_bench.estimators.kalman import KalmanBaseline, check_design, huber_noise
+from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
 from kkl_bench.protocol.system import System
@@ -72,12 +72,13 @@ class ExtendedKalman(KalmanBaseline):
         quantizer: str = "auto",
         engine: str = "reference",
     ) -> None:
-        self.inflation = inflation
-        self.robust = robust
-        self.threshold = threshold
-        self.quantizer = quantizer
-        self.engine = engine
-        check_design("ekf", robust, threshold, inflation, quantizer, engine)
+        self.store_design(
+            inflation=inflation,
+            robust=robust,
+            threshold=threshold,
+            quantizer=quantizer,
+            engine=engine,
+        )
 
     def count_flops(self, model):
         n, m = model.n_x, model.n_y

@@ -153,6 +153,14 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
     quantizer: str
     engine: str
 
+    def store_design(self, **design: Any) -> None:
+        """Store the hyperparameters every Kalman baseline shares (``inflation``, ``robust``,
+        ``threshold``, ``quantizer``, ``engine``) under their names, once
+        :func:`check_design` has accepted them."""
+        check_design(self.name, **design)
+        for key, value in design.items():
+            setattr(self, key, value)
+
     def fit(self, context: FitContext):
         super().fit(context)
         fitted = self.check_fitted()

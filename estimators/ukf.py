@@ -8,7 +8,7 @@ import math
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
 from kkl_bench.estimators import kalman_kernels
-from kkl_bench.estimators.kalman import KalmanBaseline, check_design, huber_noise
+from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.registry import estimators
@@ -70,12 +70,13 @@ class UnscentedKalman(KalmanBaseline):
         self.alpha = alpha
         self.beta = beta
         self.kappa = kappa
-        self.inflation = inflation
-        self.robust = robust
-        self.threshold = threshold
-        self.quantizer = quantizer
-        self.engine = engine
-        check_design("ukf", robust, threshold, inflation, quantizer, engine)
+        self.store_design(
+            inflation=inflation,
+            robust=robust,
+            threshold=threshold,
+            quantizer=quantizer,
+            engine=engine,
+        )
 
     def points(self, n_x: int) -> MerweScaledSigmaPoints:
         return MerweScaledSigmaPoints(n_x, alpha=self.alpha, beta=self.beta, kappa=self.kappa)
