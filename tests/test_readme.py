@@ -7,6 +7,7 @@ from pathlib import Path
 
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.harness import RunSpec, run
+from kkl_bench.measurement import MeasurementModel, NoiseLaw
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
 from kkl_bench.task import get_profile
@@ -57,7 +58,13 @@ def documented(cls) -> dict[str, str]:
     }
 
 
-INTERFACE = {"FitContext": FitContext, "Estimator": Estimator, "System": System}
+INTERFACE = {
+    "FitContext": FitContext,
+    "Estimator": Estimator,
+    "System": System,
+    "MeasurementModel": MeasurementModel,
+    "NoiseLaw": NoiseLaw,
+}
 
 
 def reference_table(cls) -> str:
@@ -77,3 +84,5 @@ def test_the_plugin_guide_names_every_field_as_its_docstring_says():
     assert {"sigma_w", "sigma_v", "logged_data"} <= fields
     assert {"uses_seed", "uses_logged_data", "fit", "estimate"} <= set(documented(Estimator))
     assert {"f", "h", "f_jacobian", "h_jacobian", "g", "n_x", "n_y"} <= set(documented(System))
+    needed = {"variance", "inlier_variance", "mixture", "log_density", "observe_every", "sensor"}
+    assert needed <= set(documented(MeasurementModel))
