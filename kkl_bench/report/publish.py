@@ -16,11 +16,14 @@ Nothing is timed or dated here, so the same results give byte-identical files.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
+from tqdm import tqdm
 
 from kkl_bench import figures
 from kkl_bench.cost import COST_FILE, read_costs, with_measured_costs
@@ -198,46 +201,55 @@ def draw_figures(
     out: Path,
     tracks: dict[str, pd.DataFrame] | None = None,
 ) -> list[str]:
-    """Draw every figure into ``out/figures`` (PNG and SVG); returns their names.
+    """Draw every figure into ``out/figures`` (PNG and SVG), with a progress bar; returns
+    their names.
 
     ``summary`` is the paper track's; each of ``tracks`` (name -> summary) gets
     its own heat map.
     """
-    names = []
     kept = kept_estimates(results_dir, profile)
-    directory = out / "figures"
-    figures.save(figures.relative_rmse_heatmap(summary), directory / "relative-rmse")
+    drawings = [("relative-rmse", lambda: figures.relative_rmse_heatmap(summary))]
     for name, of_track in (tracks or {}).items():
-        heatmap = figures.relative_rmse_heatmap(of_track, f"Track {name}: ")
-        figures.save(heatmap, directory / f"relative-rmse-{name}")
-        names.append(f"relative-rmse-{name}")
+        drawings.append(
+            (
+                f"relative-rmse-{name}",
+                functools.partial(figures.relative_rmse_heatmap, of_track, f"Track {name}: "),
+            )
+        )
         if settles(name):  # where the first test trajectory starts matters: draw it
-            names += _track_trajectories(name, results_dir, profile, directory)
-    figures.save(figures.cost_accuracy_figure(summary), directory / "cost-accuracy")
-    names += ["relative-rmse", "cost-accuracy"]
+            drawings += _track_trajectories(name, results_dir, profile)
+    drawings.append(("cost-accuracy", lambda: figures.cost_accuracy_figure(summary)))
     for system in SYSTEM_TITLES:
         for regime in REGIME_TITLES:
             cell = {e: k for (e, s, r), k in kept.items() if (s, r) == (system, regime)}
-            if not cell:
-                continue
-            name = f"trajectory-{system}-{regime}"
-            title = f"{SYSTEM_TITLES[system]}, {regime} input"
-            figures.save(figures.trajectory_figure(title, cell), directory / name)
-            names.append(name)
-    return names
+            if cell:
+                title = f"{SYSTEM_TITLES[system]}, {regime} input"
+                drawings.append(
+                    (
+                        f"trajectory-{system}-{regime}",
+                        functools.partial(figures.trajectory_figure, title, cell),
+                    )
+                )
+    directory = out / "figures"
+    for name, draw in tqdm(drawings, desc="drawing figures", unit="figure", disable=None):
+        figures.save(draw(), directory / name)
+    return [name for name, _ in drawings]
 
 
-def _track_trajectories(track: str, results_dir: Path, profile: str, directory: Path) -> list[str]:
-    """Test trajectory 0 of ``track``'s first task on every system; returns the names drawn."""
+def _track_trajectories(track: str, results_dir: Path, profile: str) -> list[tuple[str, Any]]:
+    """``(name, draw)`` of test trajectory 0 of ``track``'s first task on every system."""
     kept = kept_estimates(results_dir, profile, track)
     declared = find_track(track)
     first = declared.task_names()[0] if declared else min(r for _, _, r in kept)
-    names = []
+    drawings = []
     for system in SYSTEM_TITLES:
         cell = {e: k for (e, s, r), k in kept.items() if (s, r) == (system, first)}
         if cell:
-            name = f"track-{track}-{system}-{first}"
             title = f"Track {track}: {SYSTEM_TITLES[system]}, {first} input"
-            figures.save(figures.trajectory_figure(title, cell), directory / name)
-            names.append(name)
-    return names
+            drawings.append(
+                (
+                    f"track-{track}-{system}-{first}",
+                    functools.partial(figures.trajectory_figure, title, cell),
+                )
+            )
+    return drawings
