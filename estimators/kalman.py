@@ -27,9 +27,9 @@ track) each filter is built for the task's sensor, as the literature builds it
   an ``a`` chosen from :data:`INFLATIONS`.
 
 Choices left open (``quantizer='auto'``, ``threshold=None``, ``inflation=None``) are made
-per fit on
-validation trajectories of the training stream (:mod:`kkl_bench.tuning`), never a test
-stream, and recorded in the fit report; on the protocol's measurement model the filter
+per fit on validation trajectories of the training stream (:mod:`kkl_bench.tuning`; as many
+as the profile's ``filter_validation_trajectories``, 16 where it does not say), never a
+test stream, and recorded in the fit report; on the protocol's measurement model the filter
 is the plain one (inflation 1, no robust update), so the paper's cells are unchanged.
 
 Two engines run the same filter (``engine=`` of both estimators): ``"reference"`` (the
@@ -57,7 +57,7 @@ from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.measurement import filter_system
 from kkl_bench.protocol.compiled import CompiledModel
 from kkl_bench.protocol.system import System
-from kkl_bench.tuning import choose, validation_data
+from kkl_bench.tuning import VALIDATION_TRAJECTORIES, choose, validation_data
 
 ENGINES = ("compiled", "reference")
 """The engines a model-based filter runs on (the module docstring)."""
@@ -187,7 +187,11 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
                 lambda settings, data: self.run(
                     self.filter_system(settings).compiled(), settings, data.t, data.y, data.u
                 ),
-                validation_data(fitted.training, VALIDATION_STREAM),
+                validation_data(
+                    fitted.training,
+                    VALIDATION_STREAM,
+                    fitted.budget.get("filter_validation_trajectories", VALIDATION_TRAJECTORIES),
+                ),
             )
         self.system_ = self.filter_system(self.settings_)
         self.model_ = self.system_.compiled() if self.engine == "compiled" else None

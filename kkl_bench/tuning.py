@@ -22,10 +22,12 @@ VALIDATION_TRAJECTORIES = 16
 """Forced validation trajectories every model-based row tunes on."""
 
 
-def validation_data(training: TrainingData, stream: str) -> Trajectories:
-    """:data:`VALIDATION_TRAJECTORIES` forced trajectories of ``training``'s stream ``stream``
-    (simulated with the task's measurement model)."""
-    return training.simulate(FORCED_TRAINING, VALIDATION_TRAJECTORIES, stream=stream)
+def validation_data(
+    training: TrainingData, stream: str, count: int = VALIDATION_TRAJECTORIES
+) -> Trajectories:
+    """``count`` forced trajectories of ``training``'s stream ``stream`` (simulated with the
+    task's measurement model)."""
+    return training.simulate(FORCED_TRAINING, count, stream=stream)
 
 
 def validation_error(x_hat: np.ndarray, x: np.ndarray) -> float:
