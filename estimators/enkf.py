@@ -41,12 +41,16 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from kkl_bench.estimators.kalman import QUANTIZERS, check_choice, quantizer_treatments
+from kkl_bench.estimators.kalman import (
+    QUANTIZERS,
+    check_choice,
+    treatment_settings,
+    treatment_systems,
+)
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 
 from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator
-from kkl_bench.measurement import filter_system
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import Ring, System
 from kkl_bench.registry import estimators
@@ -207,17 +211,8 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             if self.localization is None
             else LocalTaper.of(ring_taper(context.system.ring, self.localization))
         )
-        systems_ = {
-            treatment: filter_system(context.system, context.measurement)
-            if treatment == "noise"
-            else context.system
-            for treatment in quantizer_treatments(self.quantizer, context.measurement)
-        }
-        treatments = (
-            [{"quantizer": q} for q in systems_]
-            if context.measurement.sensor.reads_as_noise
-            else [{}]
-        )
+        systems_ = treatment_systems(self.quantizer, context.system, context.measurement)
+        treatments = treatment_settings(systems_, context.measurement)
         inflations = INFLATIONS if self.inflation is None else (self.inflation,)
         candidates = [{**t, "inflation": a} for t in treatments for a in inflations]
 

@@ -100,14 +100,28 @@ def check_design(owner: str, robust, threshold, inflation, quantizer, engine) ->
         )
 
 
-def quantizer_treatments(quantizer: str, measurement) -> tuple[str, ...]:
-    """The treatments of the task's quantizer a filter asked for ``quantizer`` considers:
-    ``("in-model",)`` (the sensor in ``h``, as every other sensor) unless the sensor reads
-    as noise (:attr:`~kkl_bench.measurement.Sensor.reads_as_noise`); then the one asked
-    for, or both for ``"auto"``."""
+def treatment_systems(quantizer: str, system: System, measurement) -> dict[str, System]:
+    """The model a filter runs under each treatment of the task's quantizer it considers
+    when asked for ``quantizer``: ``{"in-model": system}`` (the sensor in ``h``, as every
+    other sensor) unless the sensor reads as noise
+    (:attr:`~kkl_bench.measurement.Sensor.reads_as_noise`); then the one asked for, or
+    both for ``"auto"`` (``"noise"``: the model without the quantizer)."""
     if not measurement.sensor.reads_as_noise:
-        return ("in-model",)
-    return ("noise", "in-model") if quantizer == "auto" else (quantizer,)
+        treatments: tuple[str, ...] = ("in-model",)
+    else:
+        treatments = ("noise", "in-model") if quantizer == "auto" else (quantizer,)
+    return {
+        treatment: filter_system(system, measurement) if treatment == "noise" else system
+        for treatment in treatments
+    }
+
+
+def treatment_settings(systems: dict[str, System], measurement) -> list[dict[str, str]]:
+    """The ``quantizer`` entry of the settings to choose from, one per treatment of
+    ``systems`` (:func:`treatment_systems`); none where the sensor does not read as noise."""
+    if not measurement.sensor.reads_as_noise:
+        return [{}]
+    return [{"quantizer": treatment} for treatment in systems]
 
 
 def huber_noise(R: np.ndarray, residual: np.ndarray, S: np.ndarray, threshold: float) -> np.ndarray:
@@ -165,19 +179,14 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
         super().fit(context)
         fitted = self.check_fitted()
         measurement = fitted.measurement
-        self.systems_ = {
-            treatment: filter_system(fitted.system, measurement)
-            if treatment == "noise"
-            else fitted.system
-            for treatment in quantizer_treatments(self.quantizer, measurement)
-        }
+        self.systems_ = treatment_systems(self.quantizer, fitted.system, measurement)
         robust = self.robust == "huber" or (
             self.robust == "auto" and not measurement.noise.gaussian
         )
         variance = measurement.inlier_variance if robust else measurement.variance
         self.R_ = variance * np.eye(fitted.system.n_y)
         candidates = self.candidates(
-            robust, plain=not measurement.features, quantized=measurement.sensor.reads_as_noise
+            robust, not measurement.features, treatment_settings(self.systems_, measurement)
         )
         self.selection_ = {}
         self.settings_ = candidates[0]
@@ -202,9 +211,11 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
         read as noise."""
         return self.systems_[settings.get("quantizer", "in-model")]
 
-    def candidates(self, robust: bool, plain: bool, quantized: bool) -> list[dict[str, Any]]:
-        """The settings to choose from: the quantizer's treatment (only where the sensor
-        reads as noise, ``quantized``), ``threshold`` (infinite unless ``robust``) and ``inflation``, each
+    def candidates(
+        self, robust: bool, plain: bool, treatments: list[dict[str, str]]
+    ) -> list[dict[str, Any]]:
+        """The settings to choose from: the quantizer's ``treatments``
+        (:func:`treatment_settings`), ``threshold`` (infinite unless ``robust``) and ``inflation``, each
         the one given or, where left open, the grid (an inflation of 1 on the protocol's
         measurement model, ``plain``)."""
         if not robust:
@@ -215,7 +226,6 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
             inflations = (float(self.inflation),)
         else:
             inflations = (1.0,) if plain else INFLATIONS
-        treatments = [{"quantizer": q} for q in self.systems_] if quantized else [{}]
         return [
             {**treatment, "threshold": c, "inflation": a}
             for treatment in treatments
