@@ -65,3 +65,22 @@ def of_rows(frame: pd.DataFrame) -> pd.Series:
     if "family" in frame:
         return frame["family"]
     return frame["estimator"].map(row_family)
+
+
+LIMIT_LABEL = "limit"
+"""What a ``limit`` row's name is followed by wherever a table or figure shows it."""
+
+
+def shown_name(row: str, family: str) -> str:
+    """How tables and figures show results row ``row`` of ``family``: its name, followed by
+    ``(limit)`` for the Bayes limit, so that no reader takes it for a contender."""
+    return f"{row} ({LIMIT_LABEL})" if family == "limit" else row
+
+
+def shown_names(frame: pd.DataFrame) -> dict[str, str]:
+    """Each results row of ``frame`` (its ``estimator`` column) -> :func:`shown_name`."""
+    families = of_rows(frame)
+    return {
+        row: shown_name(row, family)
+        for row, family in zip(frame["estimator"], families, strict=True)
+    }

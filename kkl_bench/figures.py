@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from kkl_bench import families
 from kkl_bench.results import KeptEstimate
 from kkl_bench.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, task_order
 
@@ -172,7 +173,8 @@ def relative_rmse_heatmap(summary: pd.DataFrame, title: str = ""):
         rotation=60,
         ha="right",
     )
-    axis.set_yticks(range(len(names)), names)
+    shown = families.shown_names(summary)
+    axis.set_yticks(range(len(names)), [shown.get(name, name) for name in names])
     axis.set_title(
         f"{title}RMSE relative to the {REFERENCE.upper()} (mean over seeds; 1 = as good)"
     )

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
-from kkl_bench import convergence
+from kkl_bench import convergence, families
 from kkl_bench.comparisons import limit_rows
 from kkl_bench.report import markdown
 from kkl_bench.report.model import Table
@@ -96,14 +96,16 @@ def _grid(
     markup: dict[str, tuple[str, str]],
     escape: Callable[[str], str] = str,
     settling: bool = False,
-) -> tuple[list[str], list[list[str]], list[tuple[str, str] | None]]:
-    """Header, rows and the (system, regime) of each column (None for the others) of one
-    table over ``systems`` x ``regimes``; ``escape`` quotes labels.
+) -> tuple[list[str], list[list[str]], list[tuple[str, str] | None], list[str]]:
+    """Header, rows, the (system, regime) of each column (None for the others) and the
+    results row of each row of one table over ``systems`` x ``regimes``; ``escape`` quotes
+    labels. A row is labelled by :func:`~kkl_bench.families.shown_name` (the limit as such).
 
     With ``settling``, every RMSE column is followed by a settling-time column. A row with
     no cell in the table is left out.
     """
     estimators = list(dict.fromkeys(summary["estimator"]))
+    shown = families.shown_names(summary)
     indexed = summary.set_index(["estimator", "system", "regime"])
     header, cells = ["Estimator", "Seeds"], [None, None]
     for system in systems:
@@ -115,12 +117,12 @@ def _grid(
             if settling:
                 header.append("settle (s)")
                 cells.append(None)
-    rows = []
+    rows, names = [], []
     for estimator in estimators:
         if not any((estimator, *cell) in indexed.index for cell in cells if cell):
             continue  # no cell in this table (a row run on other systems only)
         own = summary[summary["estimator"] == estimator]
-        row = [escape(estimator), _seeds(own)]
+        row = [escape(shown[estimator]), _seeds(own)]
         for system in systems:
             for regime in regimes:
                 key = (estimator, system, regime)
@@ -129,7 +131,8 @@ def _grid(
                 if settling:
                     row.append(_format_settling(indexed.loc[key]) if found else "-")
         rows.append(row)
-    return header, rows, cells
+        names.append(estimator)
+    return header, rows, cells, names
 
 
 def _chunks(items: Sequence[str], size: int) -> list[Sequence[str]]:
@@ -170,15 +173,17 @@ def grid_tables(
     indexed = summary.set_index(["estimator", "system", "regime"])
     tables = []
     for number, group in enumerate(groups):
-        header, rows, cells = _grid(summary, group, regimes, MARKUP["markdown"], settling=settling)
+        header, rows, cells, row_names = _grid(
+            summary, group, regimes, MARKUP["markdown"], settling=settling
+        )
         keys = [f"c{i}" for i in range(len(header))]
         shades = []
-        for row in rows:
+        for row_name in row_names:
             shade = []
             for cell in cells:
-                key = (row[0], *cell) if cell else None
+                key = (row_name, *cell) if cell else None
                 ratio = math.nan
-                if key in indexed.index and not row[0].startswith(PAPER_PREFIX):
+                if key in indexed.index and not row_name.startswith(PAPER_PREFIX):
                     entry = indexed.loc[key]
                     if entry["status"] == "ok":
                         ratio = (
@@ -226,7 +231,7 @@ def render(
     groups, regimes = _system_groups(summary, settling, systems_per_table)
     latex = []
     for group in groups:
-        header, rows, _ = _grid(
+        header, rows, _, _ = _grid(
             summary, group, regimes, MARKUP["latex"], _latex_escape, settling=settling
         )
         table = tabulate(rows, headers=header, tablefmt="latex_raw", disable_numparse=True)

@@ -162,8 +162,26 @@ def check_rmse_cell(cell: str, seeds: str, records: list[dict] | None) -> int:
     return 1
 
 
+COMMITTED_BOARD = Path(__file__).resolve().parents[1] / "leaderboard"
+STUDY = ("scaling.csv", "figures/scaling.svg", "figures/scaling-curves.svg")
+
+
+@pytest.fixture
+def page(results, tmp_path):
+    """A board published beside the committed scaling study (as `kkl-bench scaling` leaves
+    it in the folder), if this checkout has one."""
+    out = tmp_path / "board"
+    for name in STUDY:
+        if (COMMITTED_BOARD / name).exists():
+            (out / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(COMMITTED_BOARD / name, out / name)
+    arguments = ["publish", "--results", str(results), "--profile", "quick", "--out", str(out)]
+    assert main(arguments) == 0
+    return out
+
+
 def test_the_page_leads_with_the_board_switches_tracks_sorts_and_filters_in_a_browser(
-    published, tmp_path
+    page, tmp_path
 ):
     webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed")
     browser = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -193,7 +211,7 @@ def test_the_page_leads_with_the_board_switches_tracks_sorts_and_filters_in_a_br
         service=webdriver.ChromeService(executable_path=driver_path), options=options
     )
     try:
-        driver.get((published / "index.html").as_uri())
+        driver.get((page / "index.html").as_uri())
         errors = [entry for entry in driver.get_log("browser") if entry["level"] == "SEVERE"]
         assert errors == []
         text = driver.find_element(By.TAG_NAME, "body").text
@@ -224,6 +242,11 @@ def test_the_page_leads_with_the_board_switches_tracks_sorts_and_filters_in_a_br
                 if row.is_displayed()
             ]
 
+        # the long table is folded under the paper-layout tables until asked for
+        long_table = driver.find_element(By.ID, "results")
+        assert not long_table.is_displayed()
+        long_table.find_element(By.XPATH, "ancestor::details/summary").click()
+        assert long_table.is_displayed()
         before = column("results", "RMSE")
         driver.find_element(By.XPATH, "//table[@id='results']//th[text()='RMSE']").click()
         ascending = [float(v) for v in column("results", "RMSE")]
@@ -245,17 +268,40 @@ def test_the_page_leads_with_the_board_switches_tracks_sorts_and_filters_in_a_br
         driver.find_element(By.CSS_SELECTOR, 'button.tab[data-tab="far-init"]').click()
         assert visible_tables()[0].get_attribute("id") == "board-far-init-0"
         assert not driver.find_element(By.ID, "board-paper-0").is_displayed()
+        panel = driver.find_element(By.CSS_SELECTOR, 'div.panel[data-tab="far-init"]')
+        # in order: the one-line answer, the paper-layout table, the long table folded
+        order = [
+            "answer"
+            if e.tag_name == "p" and e.text.startswith("In one line.")
+            else e.get_attribute("id") or e.tag_name
+            for e in panel.find_elements(By.CSS_SELECTOR, "p, table, details")
+        ]
+        assert order.index("answer") < order.index("board-far-init-0") < order.index("details")
+        assert order.index("details") + 1 == order.index("track-far-init")
+        panel.find_element(By.CSS_SELECTOR, "details.table summary").click()
         driver.find_element(By.XPATH, "//table[@id='track-far-init']//th[text()='RMSE']").click()
         sorted_rmse = [float(v) for v in column("track-far-init", "RMSE")]
         assert sorted_rmse == sorted(sorted_rmse) and len(sorted_rmse) > 1
         # the panel answers first, and its heat map spans the page (legible at 1400 px)
-        panel = driver.find_element(By.CSS_SELECTOR, 'div.panel[data-tab="far-init"]')
         assert panel.find_element(By.TAG_NAME, "p").text.startswith("In one line.")
         heat_map = panel.find_element(By.CSS_SELECTOR, ".wide img")
         assert heat_map.get_attribute("src").endswith("figures/relative-rmse-far-init.svg")
         assert heat_map.size["width"] >= 1000
-        assert [e for e in driver.get_log("browser") if e["level"] == "SEVERE"] == []
         driver.save_screenshot(str(tmp_path / "leaderboard-page.png"))
+        if (page / "scaling.csv").exists():  # the scaling study is a panel with its figures
+            driver.find_element(By.CSS_SELECTOR, 'button.tab[data-tab="scaling"]').click()
+            study = driver.find_element(By.CSS_SELECTOR, 'div.panel[data-tab="scaling"]')
+            assert study.find_element(By.TAG_NAME, "h3").text.startswith("Scaling study")
+            assert "autonomous_kkl" in study.find_element(By.TAG_NAME, "table").text
+            figure = study.find_element(By.CSS_SELECTOR, ".wide img")
+            assert figure.get_attribute("src").endswith("figures/scaling.svg")
+            assert figure.size["width"] >= 1000
+            # a table wider than the page says so
+            cues = [box for box in study.find_elements(By.CSS_SELECTOR, "div.scroll")
+                    if box.get_property("scrollWidth") > box.get_property("clientWidth")]  # fmt: skip
+            assert all("overflows" in box.get_attribute("class") for box in cues)
+            driver.save_screenshot(str(tmp_path / "scaling-panel.png"))
+        assert [e for e in driver.get_log("browser") if e["level"] == "SEVERE"] == []
         assert (tmp_path / "leaderboard-page.png").stat().st_size > 10_000
     finally:
         driver.quit()

@@ -13,7 +13,7 @@ import shlex
 import sys
 from collections.abc import Sequence
 
-from kkl_bench.cli import admin, publishing, run, tables
+from kkl_bench.cli import admin, publishing, run, tables, verify
 from kkl_bench.registry import PluginLoadError, UnknownNameError
 from kkl_bench.task import ProfileError
 
@@ -35,9 +35,10 @@ examples:
   kkl-bench cost --estimator all 'static_hyperkkl[guard=True]' --out board
   kkl-bench cache info
   kkl-bench check my_estimator --system duffing lorenz
+  kkl-bench verify --sample 8
 """
 
-COMMANDS = (admin, run, tables, publishing)
+COMMANDS = (admin, run, tables, publishing, verify)
 """The modules that declare the subcommands (``add_parser``), in the order help lists them."""
 
 

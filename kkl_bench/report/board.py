@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from kkl_bench import figures, findings, variants
+from kkl_bench import families, figures, findings, variants
 from kkl_bench.comparisons import comparison_cells, limit_table, one_line_answer
 from kkl_bench.cost import COST_FILE
 from kkl_bench.leaderboard import cost_table, grid_tables, measured_cost_table, paper_comparison
@@ -56,7 +56,9 @@ class Board:
     the results folder relative to the published one; smoke: the profile is a smoke test
     (no findings, no ratios to the paper); margin: the marks' practical-equivalence margin;
     scaling_study: ``scaling.md`` stands beside the board; costs: the paper track's rows of
-    its ``cost.csv``, if any.
+    its ``cost.csv``, if any; verifications: the rows of its ``verification.csv``
+    (:mod:`kkl_bench.verification`), if any; scaling_panel: the scaling study's panel
+    (:func:`kkl_bench.report.scaling.study_panel`), if the folder holds the study.
     """
 
     summary: pd.DataFrame
@@ -71,6 +73,8 @@ class Board:
     margin: float
     scaling_study: bool = False
     costs: pd.DataFrame | None = None
+    verifications: pd.DataFrame | None = None
+    scaling_panel: Section | None = None
 
 
 SMOKE_BANNER = (
@@ -149,10 +153,13 @@ and every entry not distinguishable from it in that way are in *italics*
 reference and never marked. `kkl_bench/significance.py` has
 the exact procedure."""
     page = Text(
-        "On the page, each track has a panel: its table in the paper's layout first, every "
+        "On the page, each track has a panel: its answer in one line and, where a limit was "
+        "scored, each cell's distance from it; then its table in the paper's layout, every "
         "RMSE cell coloured by its ratio to the best possible (the particle filter's "
-        "Bayes limit where it ran, else the column's lowest RMSE; green at 1, red from 10 "
-        "on), then the same numbers as a long table to sort and filter.",
+        "Bayes limit, labelled `(limit)`, where it ran, else the column's lowest RMSE; green "
+        "at 1, red from 10 on); then the same numbers as a long table to sort and filter, "
+        "folded until opened. A table wider than the page says so above it and scrolls "
+        "sideways.",
         only=HTML,
     )
     return Section("How to read it", [Text(text), page], folded=True)
@@ -184,10 +191,15 @@ def long_table(summary: pd.DataFrame, name: str, settling: bool = False) -> Tabl
         )
         for row in ours.itertuples()
     ]
+    ours["estimator"] = ours["estimator"].map(families.shown_names(ours))
     columns = RESULT_COLUMNS | (SETTLING_COLUMNS if settling else {})
     marks = pd.DataFrame("", index=ours.index, columns=list(columns))
     marks["rmse_mean"] = ours["mark"]
-    return Table(ours, columns, id=name, marks=marks, floatfmt=".4g", sortable=True, only=HTML)
+    folded = f"Every cell, one row per estimator and task ({len(ours)} rows; sortable)"
+    return Table(
+        ours, columns, id=name, marks=marks, floatfmt=".4g", sortable=True, only=HTML,
+        folded=folded,
+    )  # fmt: skip
 
 
 def paper_sections(board: Board) -> list[Section]:

@@ -102,10 +102,13 @@ def table(block: Table) -> str:
         rows.append(f"<tr{attributes}>{''.join(cells)}</tr>")
     kind = ' class="sortable"' if block.sortable else ""
     identity = f' id="{block.id}"' if block.id else ""
-    return (
-        f"<table{kind}{identity}><thead><tr>{head}</tr></thead>"
-        f"<tbody>\n{chr(10).join(rows)}\n</tbody></table>"
+    text = (
+        f'<div class="scroll"><table{kind}{identity}><thead><tr>{head}</tr></thead>'
+        f"<tbody>\n{chr(10).join(rows)}\n</tbody></table></div>"
     )
+    if block.folded:
+        return f'<details class="table"><summary>{inline(html.escape(block.folded))}</summary>\n{text}\n</details>'
+    return text
 
 
 def block(item) -> str:
@@ -192,7 +195,7 @@ def document(title: str, sections: list[Section], filters: dict[str, dict[str, s
 <h1>{inline(html.escape(title))}</h1>
 {before}
 <nav class="tabs" aria-label="tracks">Track: {buttons}</nav>
-<div class="controls">{controls} <span class="hint">Click a column header of a long table to sort it.</span></div>
+<div class="controls">{controls} <span class="hint">Open a long table (Every cell, ...) and click a column header to sort it.</span></div>
 {panels}
 {after}
 </body>
@@ -218,6 +221,10 @@ button.tab.active { background: #2b5797; color: #fff; border-color: #2b5797; }
 img { max-width: 100%; } figure { margin: 0 0 1rem; } .wide img { width: 100%; }
 pre { background: #f4f4f4; padding: 0.6rem; overflow-x: auto; }
 details { margin: 0.5rem 0; } details summary { cursor: pointer; font-weight: 600; font-size: 1.1rem; }
+details.table summary { font-size: 0.95rem; }
+.scroll { overflow-x: auto; max-width: 100%; }
+.scroll.overflows { box-shadow: inset -12px 0 10px -10px #888; }
+.scroll.overflows::before { content: "\\21E2  wider than the page: scroll sideways for the other columns"; display: block; position: sticky; left: 0; color: #a33; font-size: 0.8rem; }
 """
 
 SCRIPT = """
@@ -254,11 +261,17 @@ function applyFilters() {
                     (regime && figure.dataset.regime !== regime);
   });
 }
+function markOverflows() {
+  document.querySelectorAll("div.scroll").forEach(box => {
+    box.classList.toggle("overflows", box.scrollWidth > box.clientWidth + 1);
+  });
+}
 function showTab(name) {
   document.querySelectorAll("div.panel").forEach(panel => { panel.hidden = panel.dataset.tab !== name; });
   document.querySelectorAll("button.tab").forEach(button => {
     button.classList.toggle("active", button.dataset.tab === name);
   });
+  markOverflows();
 }
 document.addEventListener("DOMContentLoaded", () => {
   document.querySelectorAll("table.sortable th").forEach(th =>
@@ -267,6 +280,10 @@ document.addEventListener("DOMContentLoaded", () => {
     select.addEventListener("change", applyFilters));
   const buttons = document.querySelectorAll("button.tab");
   buttons.forEach(button => button.addEventListener("click", () => showTab(button.dataset.tab)));
+  document.querySelectorAll("details").forEach(details =>
+    details.addEventListener("toggle", markOverflows));
+  window.addEventListener("resize", markOverflows);
   if (buttons.length) showTab(buttons[0].dataset.tab);
+  markOverflows();
 });
 """

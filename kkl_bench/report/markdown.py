@@ -63,5 +63,8 @@ def section(part: Section) -> str:
 
 
 def document(title: str, sections: list[Section]) -> str:
-    """The whole Markdown file: ``# title``, then every section."""
-    return "\n\n".join([f"# {title}", *map(section, sections)]) + "\n"
+    """The whole Markdown file: ``# title``, then every section that shows anything in
+    Markdown (a page-only section, such as a panel drawn from a file beside the board, is
+    left out)."""
+    kept = [part for part in sections if not part.blocks or shown(part.blocks, MARKDOWN)]
+    return "\n\n".join([f"# {title}", *map(section, kept)]) + "\n"

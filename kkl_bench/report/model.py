@@ -36,6 +36,8 @@ class Table:
     floatfmt, intfmt: how numbers are written.
     sortable: the page sorts it by any column and filters its rows by the frame's
         ``system`` and ``regime`` columns (raw names), if it has them.
+    folded: if set, the page shows only this line until clicked (a long table that
+        would otherwise push what follows it out of sight).
     """
 
     frame: pd.DataFrame
@@ -47,6 +49,7 @@ class Table:
     intfmt: str = ""
     sortable: bool = False
     only: str | None = None
+    folded: str = ""
 
     @property
     def headers(self) -> dict[str, str]:

@@ -8,6 +8,7 @@ import pandas as pd
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report.board import Board
 from kkl_bench.report.model import Section, Table, Text
+from kkl_bench.verification import VERDICT_COLUMNS, latest_run, verification_sentence
 
 NOT_RECORDED = "not recorded"
 """What the Reproduce table says of cells written before runs recorded their command line."""
@@ -87,7 +88,16 @@ def provenance_sections(board: Board) -> list[Section]:
         (key, ", ".join(values)) for key, values in _versions(board.results).items()
     ]
     versions = pd.DataFrame(facts, columns=["what", "value"])
+    checked = [Text(verification_sentence(board.verifications))]
+    if board.verifications is not None and not board.verifications.empty:
+        latest = latest_run(board.verifications).assign(
+            cell=lambda frame: "`" + frame["cell"] + "`"
+        )
+        checked.append(Table(latest, VERDICT_COLUMNS, id="verification"))
     return [
         Section("Provenance", [Table(versions, id="provenance")]),
-        Section("Reproduce", [Text(RUNS_TEXT), Table(board.runs, RUN_COLUMNS, id="runs")]),
+        Section(
+            "Reproduce",
+            [Text(RUNS_TEXT), Table(board.runs, RUN_COLUMNS, id="runs"), *checked],
+        ),
     ]

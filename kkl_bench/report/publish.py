@@ -33,12 +33,14 @@ from kkl_bench.report import html, markdown
 from kkl_bench.report.board import Board, TrackTables, introduction, paper_sections, reading_guide
 from kkl_bench.report.model import Section
 from kkl_bench.report.provenance import failed_seeds, provenance_sections, runs_frame
+from kkl_bench.report.scaling import study_panel
 from kkl_bench.report.tracks import settles, track_sections
 from kkl_bench.results import kept_estimates
 from kkl_bench.significance import MARGIN
 from kkl_bench.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, summary_table
 from kkl_bench.task import ProfileError, get_profile
 from kkl_bench.tracks import find_track
+from kkl_bench.verification import VERIFICATION_FILE, read_verifications
 
 MANIFEST = "publication.json"
 """The file by which ``publish`` owns its folder: profile, results folder and files written."""
@@ -55,6 +57,7 @@ def sections(board: Board) -> list[Section]:
         reading_guide(board),
         *paper_sections(board),
         *track_sections(board),
+        *([board.scaling_panel] if board.scaling_panel else []),
         *provenance_sections(board),
     ]
 
@@ -122,6 +125,8 @@ def publish(
         margin=margin,
         scaling_study=(out / "scaling.md").exists(),
         costs=costs,
+        verifications=read_verifications(out / VERIFICATION_FILE),
+        scaling_panel=study_panel(out, profile),
     )
     parts = sections(board)
     written = {

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
 
 from kkl_bench import figures
 from kkl_bench.report import markdown
-from kkl_bench.report.model import Figure, Section, Table, Text
+from kkl_bench.report.model import HTML, Figure, Section, Table, Text
 from kkl_bench.scaling import (
     BATCHES,
     GROWTHS,
@@ -247,8 +248,33 @@ def curves_section(curves: pd.DataFrame) -> Section:
                 "curves had flattened before the budget ran out. Fits trained before the "
                 "curves were recorded have none."
             ),
-            Figure("scaling-curves", "validation curves"),
+            Figure(CURVES_FIGURE, "validation curves"),
         ],
+    )
+
+
+STUDY_FILE, CURVES_FIGURE = "scaling.csv", "scaling-curves"
+"""The study's table as ``kkl-bench scaling`` writes it, and its curves' figure."""
+TAB = "scaling"
+"""The page's panel of the study."""
+
+
+def study_panel(out: Path, profile: str) -> Section | None:
+    """The study in ``out`` (its :data:`STUDY_FILE` and figures, as ``kkl-bench scaling``
+    wrote them) as the page's panel :data:`TAB`, or None if ``out`` holds no study."""
+    study = Path(out) / STUDY_FILE
+    if not study.exists():
+        return None
+    frame = pd.read_csv(study)
+    sizes = sorted(set(frame["n"]))
+    blocks = list(study_section(frame, profile).blocks)
+    if (Path(out) / "figures" / f"{CURVES_FIGURE}.svg").exists():
+        blocks.append(Figure(CURVES_FIGURE, "validation curves of the fits"))
+    return Section(
+        f"Scaling study: Lorenz-96 from {sizes[0]} to {sizes[-1]} states",
+        [replace(block, only=HTML) for block in blocks],
+        level=3,
+        tab=TAB,
     )
 
 
@@ -279,12 +305,12 @@ def write_study(
     )
     study = out / "scaling.md"
     study.write_text(text, encoding="utf-8")
-    table = out / "scaling.csv"
+    table = out / STUDY_FILE
     frame.to_csv(table, index=False, float_format="%.6g")
     plotted = frame.assign(fit_time_s=trained_fit_times(frame))  # a filter's is noise
     figures.save(figures.scaling_figure(plotted, GROWTHS), out / "figures" / "scaling")
     written = [study, table, out / "figures" / "scaling.png"]
     if has_curves:
-        figures.save(figures.curves_figure(curves), out / "figures" / "scaling-curves")
-        written.append(out / "figures" / "scaling-curves.png")
+        figures.save(figures.curves_figure(curves), out / "figures" / CURVES_FIGURE)
+        written.append(out / "figures" / f"{CURVES_FIGURE}.png")
     return written

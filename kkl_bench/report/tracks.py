@@ -212,7 +212,8 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
     if board.scaling_study and name == SCALING_TRACK:
         text += (
             "\n\nHow each estimator's fit time, online cost and RMSE grow with Lorenz-96's "
-            "dimension: the [scaling study](scaling.md) (`kkl-bench scaling`)."
+            "dimension: the [scaling study](scaling.md) (`kkl-bench scaling`; on the page, "
+            "the panel `scaling`)."
         )
     answer = one_line_answer(summary)
     blocks = [Text(f"**In one line.** {answer}")] if answer else []

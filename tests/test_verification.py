@@ -1,0 +1,126 @@
+"""``kkl-bench verify``: a cell it has just written is re-derived identical; a changed number
+is found, measured and (if asked) replaced; the verdicts reach the board's sentence."""
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kkl_bench.cli import main
+from kkl_bench.results import read_cell
+from kkl_bench.verification import (
+    DRIFTED,
+    IDENTICAL,
+    VERIFICATION_FILE,
+    WITHIN,
+    largest_relative_difference,
+    read_verifications,
+    verification_sentence,
+)
+
+CELL = "ekf/vdp/square-seed0"
+
+
+@pytest.mark.parametrize(
+    ("published", "recomputed", "expected"),
+    [
+        ([1.0, 2.0], [1.0, 2.0], 0.0),
+        ([1.0, 2.0], [1.0, 2.001], 0.0005),  # |2.001 - 2| / 2
+        ([1.0, math.inf], [1.5, math.inf], 0.5),  # diverged on both: no difference
+        ([1.0, math.nan], [1.0, math.inf], 0.0),  # non-finite on both
+        ([1.0, 2.0], [1.0, math.inf], math.inf),  # diverged on one only
+        ([1.0, 2.0], [1.0], math.inf),  # another number of trajectories
+        ([0.0], [1e-9], math.inf),
+    ],
+)
+def test_the_largest_relative_difference_per_trajectory(published, recomputed, expected):
+    assert largest_relative_difference(published, recomputed) == pytest.approx(expected)
+
+
+@pytest.fixture(scope="module")
+def published(tmp_path_factory):
+    """Results holding one quick cell, written by `kkl-bench run`."""
+    folder = tmp_path_factory.mktemp("published") / "results"
+    assert main(["run", "--estimator", "ekf", "--system", "vdp", "--regime", "square",
+                 "--results", str(folder)]) == 0  # fmt: skip
+    return folder
+
+
+@pytest.fixture
+def results(published, tmp_path):
+    """A copy of ``published`` for one test to verify (and change)."""
+    return Path(shutil.copytree(published, tmp_path / "results"))
+
+
+def verify(results, *arguments):
+    out = results.parent / "board"
+    status = main(["verify", *arguments, "--results", str(results), "--profile", "quick",
+                   "--out", str(out)])  # fmt: skip
+    return status, read_verifications(out / VERIFICATION_FILE)
+
+
+def test_a_cell_just_written_is_verified_identical(results, capsys):
+    status, verdicts = verify(results, CELL)
+    assert status == 0
+    assert verdicts[["cell", "verdict", "largest_relative_difference"]].values.tolist() == [
+        [f"{CELL}.json", IDENTICAL, 0.0]
+    ]
+    assert "1 identical, 0 within tolerance, 0 drifted" in capsys.readouterr().out
+
+
+def test_a_changed_number_is_drifted_with_its_difference_and_replaced_if_asked(results):
+    path = results / "quick" / f"{CELL}.json"
+    record = json.loads(path.read_text())
+    true_rmse = list(record["rmse"])
+    record["rmse"][3] *= 1.05  # one trajectory's published RMSE 5 % off
+    path.write_text(json.dumps(record))
+
+    status, verdicts = verify(results, CELL, "--tolerance", "0.1")
+    assert status == 0 and verdicts["verdict"].tolist() == [WITHIN]
+
+    status, verdicts = verify(results, CELL)
+    assert status == 1
+    latest = verdicts.iloc[-1]
+    assert latest["verdict"] == DRIFTED and not latest["replaced"]
+    assert latest["largest_relative_difference"] == pytest.approx(0.05 / 1.05)
+    assert read_cell(path).rmse[3] == pytest.approx(true_rmse[3] * 1.05)  # reported only
+
+    status, verdicts = verify(results, CELL, "--replace-drifted")
+    assert status == 1 and verdicts.iloc[-1]["replaced"]
+    assert np.array_equal(read_cell(path).rmse, true_rmse)
+    assert len(verdicts) == 3  # every run's verdicts kept
+
+
+def test_a_sample_is_drawn_reproducibly_and_the_board_says_what_it_found(results, capsys):
+    status, verdicts = verify(results, "--sample", "5", "--sample-seed", "7")
+    assert status == 0
+    assert verdicts["selection"].tolist() == ["random 1 of 1 (--sample-seed 7)"]
+    sentence = verification_sentence(verdicts)
+    assert "1 cells (random 1 of 1 (--sample-seed 7)) re-derived from an empty model cache" in (
+        sentence
+    )
+    assert "1 identical, 0 within a relative 0.0001 of every trajectory's RMSE, 0 drifted." in (
+        sentence
+    )
+    assert verification_sentence(None).startswith("Not verified yet")
+
+    board = results.parent / "board"  # where the verdicts went: the board reads them
+    assert main(["publish", "--results", str(results), "--out", str(board)]) == 0
+    reproduce = (board / "README.md").read_text().split("## Reproduce")[1]
+    assert sentence in reproduce and f"| `{CELL}.json` | identical " in reproduce
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ([], "name the cells to verify or give --sample N"),
+        (["ekf/vdp/sqare-seed0"], "did you mean 'ekf/vdp/square-seed0'?"),
+        ([CELL, "--tolerance", "-1"], "--tolerance must be a non-negative number"),
+    ],
+)
+def test_bad_verify_arguments_are_named(results, capsys, arguments, message):
+    assert verify(results, *arguments)[0] == 2
+    assert message in capsys.readouterr().err
