@@ -272,8 +272,8 @@ def verification_sentence(verifications: pd.DataFrame | None) -> str:
     commits = ", ".join(f"`{c}`" for c in sorted(set(latest["verified_commit"].astype(str))))
     sentence = (
         f"Last verified on {latest['run'].iloc[0][:10]} at commit {commits} by "
-        f"`kkl-bench verify`: {len(latest)} cells ({', '.join(sorted(set(latest['selection'])))}) "
-        "re-derived from an empty model cache: "
+        f"`kkl-bench verify`: of the cells it chose ({', '.join(sorted(set(latest['selection'])))}), "
+        f"{len(latest)} re-derived from an empty model cache: "
         f"{counts.get(IDENTICAL, 0)} identical, "
         f"{counts.get(WITHIN, 0)} within a relative {tolerances} of every trajectory's RMSE, "
         f"{len(drifted)} drifted"
