@@ -299,7 +299,9 @@ def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = Non
                 raise
             damaged.append(error)
             continue
-        row = mark_diverged(asdict(cell))  # cells stored before the bound was applied
+        # a shallow copy (the record is read for this row only); cells stored before the
+        # bound was applied are marked here
+        row = mark_diverged(dict(vars(cell)))
         for metric in ("rmse", "smape", "nrmse"):
             row[f"{metric}_mean"], row[f"{metric}_std"] = mean_and_std(row[metric])
         row["n_diverged"] = sum(not math.isfinite(value) for value in row["rmse"])
@@ -314,8 +316,8 @@ def mean_and_std(values: list[float]) -> tuple[float, float]:
         return math.nan, math.nan
     if not all(math.isfinite(value) for value in values):
         return math.inf, math.inf
-    series = pd.Series(values, dtype=float)
-    return series.mean(), series.std(ddof=0)
+    array = np.asarray(values, dtype=float)
+    return float(array.mean()), float(array.std())
 
 
 def trajectory_table(results: pd.DataFrame) -> pd.DataFrame:
