@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import time
 from collections.abc import Callable, Iterable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
@@ -25,6 +26,7 @@ import pandas as pd
 from filelock import FileLock
 
 from kkl_bench import harness
+from kkl_bench.executors import execute
 from kkl_bench.registry import did_you_mean
 from kkl_bench.results import CellResult, cell_path, estimate_path, provenance, read_cell
 from kkl_bench.spec import RunSpec
@@ -202,6 +204,15 @@ def latest_run(verifications: pd.DataFrame) -> pd.DataFrame:
     return verifications[verifications["run"] == verifications["run"].max()]
 
 
+def _recompute_timed(path: Path, work: Path, command: str | None) -> tuple:
+    """``(path, published, recomputed, its path, seconds)`` for the record at ``path``
+    (:func:`recompute`; a job of :func:`verify`, run in a worker when ``jobs > 1``)."""
+    published = read_cell(path)
+    start = time.perf_counter()
+    recomputed, new_path = recompute(published, work, command)
+    return path, published, recomputed, new_path, time.perf_counter() - start
+
+
 def verify(
     paths: Iterable[Path],
     results_dir: Path,
@@ -212,10 +223,12 @@ def verify(
     replace_drifted: bool = False,
     command: str | None = None,
     on_cell: Callable[[dict], None] | None = None,
+    jobs: int = 1,
 ) -> pd.DataFrame:
     """Recompute each cell record of ``paths`` (under ``results_dir``) in the empty folder
-    ``work`` (results and model cache, :func:`recompute`), append each verdict to
-    ``out_file`` as soon as it is known and return them all.
+    ``work`` (results and model cache, :func:`recompute`; ``jobs`` cells at a time, in
+    worker processes that share the cache), append each verdict to ``out_file`` as soon as
+    it is known and return them all.
 
     ``selection`` says how the cells were chosen (recorded with each verdict). With
     ``replace_drifted`` a drifted cell's record is replaced by the recomputed one.
@@ -224,10 +237,10 @@ def verify(
     run = datetime.now(UTC).isoformat(timespec="seconds")
     commit = provenance()["git_commit"]
     rows = []
-    for path in paths:
-        published = read_cell(path)
-        start = datetime.now(UTC)
-        recomputed, new_path = recompute(published, work, command)
+    jobs_arguments = [(path, work, command) for path in paths]
+    for path, published, recomputed, new_path, seconds in execute(
+        _recompute_timed, jobs_arguments, jobs
+    ):
         verdict, difference = verdict_of(published, recomputed, tolerance)
         replaced = replace_drifted and verdict == DRIFTED
         if replaced:
@@ -247,7 +260,7 @@ def verify(
             "published_commit": published.provenance.get("git_commit"),
             "verified_commit": commit,
             "selection": selection,
-            "seconds": round((datetime.now(UTC) - start).total_seconds(), 1),
+            "seconds": round(seconds, 1),
             "replaced": replaced,
         }
         append(out_file, pd.DataFrame([row]))

@@ -42,9 +42,9 @@ def test_the_largest_relative_difference_per_trajectory(published, recomputed, e
 
 @pytest.fixture(scope="module")
 def published(tmp_path_factory):
-    """Results holding one quick cell, written by `kkl-bench run`."""
+    """Results holding two quick cells, written by `kkl-bench run`."""
     folder = tmp_path_factory.mktemp("published") / "results"
-    assert main(["run", "--estimator", "ekf", "--system", "vdp", "--regime", "square",
+    assert main(["run", "--estimator", "ekf", "--system", "vdp", "--regime", "square", "zero",
                  "--results", str(folder)]) == 0  # fmt: skip
     return folder
 
@@ -94,15 +94,16 @@ def test_a_changed_number_is_drifted_with_its_difference_and_replaced_if_asked(r
     assert len(verdicts) == 3  # every run's verdicts kept
 
 
-def test_a_sample_is_drawn_reproducibly_and_the_board_says_what_it_found(results, capsys):
-    status, verdicts = verify(results, "--sample", "5", "--sample-seed", "7")
+def test_a_sample_is_verified_in_parallel_and_the_board_says_what_it_found(results, capsys):
+    status, verdicts = verify(results, "--sample", "5", "--sample-seed", "7", "--jobs", "2")
     assert status == 0
-    assert verdicts["selection"].tolist() == ["random 1 of 1 (--sample-seed 7)"]
+    assert verdicts["selection"].tolist() == ["random 2 of 2 (--sample-seed 7)"] * 2
+    assert sorted(verdicts["cell"]) == [f"{CELL}.json", "ekf/vdp/zero-seed0.json"]
     sentence = verification_sentence(verdicts)
-    assert "of the cells it chose (random 1 of 1 (--sample-seed 7)), 1 re-derived from an " in (
+    assert "of the cells it chose (random 2 of 2 (--sample-seed 7)), 2 re-derived from an " in (
         sentence
     )
-    assert "1 identical, 0 within a relative 0.0001 of every trajectory's RMSE, 0 drifted." in (
+    assert "2 identical, 0 within a relative 0.0001 of every trajectory's RMSE, 0 drifted." in (
         sentence
     )
     assert verification_sentence(None).startswith("Not verified yet")

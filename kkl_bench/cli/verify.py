@@ -65,6 +65,12 @@ def add_parser(commands) -> None:
         f"(default {verification.TOLERANCE:g})",
     )
     verify.add_argument(
+        "--jobs",
+        type=positive_integer("--jobs"),
+        default=1,
+        help="cells recomputed at a time, in worker processes sharing the model cache (default 1)",
+    )
+    verify.add_argument(
         "--replace-drifted",
         action="store_true",
         help="replace each drifted cell's record (and kept estimate) in --results by the "
@@ -118,6 +124,7 @@ def verify_cells(args: argparse.Namespace) -> int:
             args.replace_drifted,
             args.command_line,
             on_cell=report,
+            jobs=args.jobs,
         )
     counts = rows["verdict"].value_counts()
     print(
