@@ -188,7 +188,7 @@ def _replace(published_path: Path, recomputed_path: Path) -> None:
 def append(out_file: Path, rows: pd.DataFrame) -> None:
     """Append ``rows`` to the verification file (created with its header), under a lock."""
     out_file.parent.mkdir(parents=True, exist_ok=True)
-    with FileLock(f"{out_file}.lock"):
+    with FileLock(out_file.with_name(f".{out_file.name}.lock")):  # hidden, ignored by git
         rows[COLUMNS].to_csv(out_file, mode="a", header=not out_file.exists(), index=False)
 
 
