@@ -293,9 +293,9 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
         dt = float(t[1] - t[0]) if len(t) > 1 else context.dt
         batch, steps, _ = y.shape
         x_hat = np.full((batch, steps, context.system.n_x), np.nan)
-        if model is not None:
-            y = np.ascontiguousarray(y, dtype=np.float64)
-            u = np.ascontiguousarray(u[..., 0], dtype=np.float64)
+        if model is not None:  # writeable copies: numba compiles anew for read-only arrays
+            y = np.array(y, dtype=np.float64, order="C")
+            u = np.array(u[..., 0], dtype=np.float64, order="C")
             self.run_compiled(model, settings, dt, y, u, x_hat)
             return x_hat
         for b in range(batch):
