@@ -69,20 +69,21 @@ def _analyse(anomalies_y, precision_weights, innovation, anomalies, mean, out):
     scaled = anomalies_y * precision_weights  # C^T
     projected = scaled @ innovation  # C (y - y_bar): (N,)
     if outputs >= members:
-        precision = scaled @ anomalies_y.T
+        precision = scaled @ np.ascontiguousarray(anomalies_y.T)
         for i in range(members):
             precision[i, i] += a
         values, vectors = np.linalg.eigh(precision)  # symmetric positive definite
         rotated = projected @ vectors
         for j in range(members):
             rotated[j] /= values[j]
-        weights = rotated @ vectors.T
+        vectors_t = np.ascontiguousarray(vectors.T)
+        weights = rotated @ vectors_t
         scaled_vectors = vectors.copy()
         for j in range(members):
             factor = math.sqrt(a / values[j])
             for i in range(members):
                 scaled_vectors[i, j] *= factor
-        transform = scaled_vectors @ vectors.T
+        transform = scaled_vectors @ vectors_t
         for i in range(members):
             for j in range(members):
                 transform[i, j] += weights[j]
@@ -92,13 +93,14 @@ def _analyse(anomalies_y, precision_weights, innovation, anomalies, mean, out):
                 out[i, j] += mean[j]
         return
     b = anomalies_y * np.sqrt(precision_weights)
-    gram = b.T @ b
+    b_t = np.ascontiguousarray(b.T)
+    gram = b_t @ b
     if outputs == 1:
         values, rotation = np.array([gram[0, 0]]), np.ones((1, 1))
     else:
         values, rotation = np.linalg.eigh(gram)
     e = b @ rotation  # (N, m)
-    along = e.T @ projected
+    along = np.ascontiguousarray(e.T) @ projected
     weights = projected.copy()
     for k in range(outputs):
         coefficient = along[k] / (a + values[k])

@@ -102,11 +102,18 @@ def test_the_compiled_engine_equals_filterpy_on_sampled_standard_cells(name, tmp
     print(f"{name}: {sensitive} of {compared} trajectories rounding-sensitive")
 
 
-def test_the_compiled_letkf_equals_the_reference_on_lorenz96(tmp_path):
-    """The localized analysis (one transform per site over the measurements it weighs) on a
-    quick more-systems cell of Lorenz-96 with ten states."""
-    spec = spec_for(("more-systems",), "quick", tmp_path, ("lorenz96-n10",), ("sinusoid",))
-    row = "enkf[localization=3]"
+@pytest.mark.parametrize(
+    ("row", "system"),
+    [
+        ("enkf[localization=3]", "lorenz96-n10"),  # the LETKF: a transform per site
+        ("enkf[n=3]", "lorenz96-n5"),  # as many outputs as members: the N x N analysis
+    ],
+)
+def test_the_compiled_enkf_equals_the_reference_on_lorenz96(row, system, tmp_path):
+    """The compiled EnKF's other analyses on a quick more-systems cell of Lorenz-96: the
+    localized one (over the measurements each site weighs) and the global one where the
+    members are no more than the outputs (the eigendecomposition of ``N x N``)."""
+    spec = spec_for(("more-systems",), "quick", tmp_path, (system,), ("sinusoid",))
     compared, sensitive = compare_engines(spec, row, spec.tasks(), spec.profile.n_test)
     assert compared == spec.profile.n_test and sensitive == 0
 
