@@ -100,7 +100,8 @@ def sampled_cells(paths: Sequence[Path], n: int, seed: int) -> list[Path]:
 def recompute(cell: CellResult, work: Path, command: str | None = None) -> tuple[CellResult, Path]:
     """``cell`` scored again at the current code, into ``work/results`` with the model cache
     ``work/cache`` (left as it is: empty at the start of a verification run); returns the
-    new record and its path."""
+    new record and its path. Only the cell's own row is fitted (a ``run`` of its estimator
+    would also fit its ``+logged`` or ``+truth`` rows on the task)."""
     spec = RunSpec(
         estimators=(cell.estimator,),
         systems=(cell.system,),
@@ -114,7 +115,8 @@ def recompute(cell: CellResult, work: Path, command: str | None = None) -> tuple
         device="cpu",
         command=command,
     )
-    harness.run(spec)
+    tasks = tuple(task for task in spec.tasks(cell.system) if task.regime == cell.regime)
+    harness.run_job(spec, harness.Job(cell.estimator, cell.system, tasks, cell.seed))
     path = cell_path(
         spec.results_dir, cell.estimator, cell.system, cell.regime, cell.profile, cell.seed,
         cell.track,

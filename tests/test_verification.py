@@ -18,6 +18,7 @@ from kkl_bench.verification import (
     WITHIN,
     largest_relative_difference,
     read_verifications,
+    recompute,
     verification_sentence,
 )
 
@@ -125,3 +126,18 @@ def test_a_sample_is_verified_in_parallel_and_the_board_says_what_it_found(resul
 def test_bad_verify_arguments_are_named(results, capsys, arguments, message):
     assert verify(results, *arguments)[0] == 2
     assert message in capsys.readouterr().err
+
+
+def test_only_the_cells_own_row_is_refitted(tmp_path, capsys):
+    """A mismatch cell of a filter that also has a ``+logged`` row: verifying the filter's
+    cell fits the filter alone (a run of it fits both)."""
+    results = tmp_path / "results"
+    arguments = ["--system", "vdp", "--track", "mismatch", "--regime", "params25-sinusoid"]
+    assert main(["run", "--estimator", "ekf", *arguments, "--results", str(results)]) == 0
+    assert {p.name for p in (results / "quick").iterdir()} == {"ekf", "ekf+logged"}
+    published = read_cell(
+        results / "quick" / "ekf" / "vdp" / "mismatch" / "params25-sinusoid-seed0.json"
+    )
+    recomputed, _ = recompute(published, tmp_path / "work")
+    assert recomputed.rmse == published.rmse
+    assert {p.name for p in (tmp_path / "work" / "results" / "quick").iterdir()} == {"ekf"}
