@@ -54,6 +54,7 @@ import numpy as np
 from kkl_bench.estimators import enkf_kernels
 from kkl_bench.estimators.kalman import (
     QUANTIZERS,
+    TwoEngines,
     check_choice,
     check_engine,
     treatment_settings,
@@ -183,7 +184,7 @@ INFLATIONS = (1.0, 1.01, 1.02, 1.05, 1.1)
 
 
 @estimators.register("enkf")
-class EnsembleKalman(CalibratesOnLoggedData, Estimator):
+class EnsembleKalman(TwoEngines, CalibratesOnLoggedData, Estimator):
     """Ensemble transform (square-root) Kalman filter with multiplicative inflation.
 
     Parameters
@@ -271,12 +272,6 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
         choose_setting(self.setting_)
         return self
 
-    @property
-    def engine_used(self) -> str:
-        """The engine :meth:`estimate` runs: the one asked for, or ``"reference"`` where
-        the system has no compiled model."""
-        return "reference" if getattr(self, "model_", None) is None else "compiled"
-
     def fit_report(self):
         return {
             **super().fit_report(),
@@ -290,9 +285,9 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
 
     def flops_per_step(self) -> float:
         """Flops of one trajectory-step on the engine that runs: every member's RK4 step and
-        noise, and the analysis (per site with localization, over the measurements the
-        site weighs, :func:`analysis_flops`) and the inflation. NaN for a system without a compiled model (no
-        declared drift count)."""
+        noise, the analysis (per site with localization, over the measurements the site
+        weighs, :func:`analysis_flops`) and the inflation. NaN for a system without a
+        compiled model (no declared drift count)."""
         model = self.system_.compiled()
         if model is None:
             return math.nan
@@ -346,9 +341,7 @@ class EnsembleKalman(CalibratesOnLoggedData, Estimator):
             near, taper = np.zeros((0, 0), dtype=np.int64), np.zeros((0, 0))
         else:
             near, taper = self.taper_.near.astype(np.int64), self.taper_.weights
-        # writeable copies: numba compiles the kernel anew for read-only arrays
-        y = np.array(y, dtype=np.float64, order="C")
-        u = np.array(u[..., 0], dtype=np.float64, order="C")
+        y, u = self.kernel_inputs(y, u)
         for b, rng in enumerate(trajectory_generators(context.seed, y[:, 0])):
             initial = rng.uniform(context.x0_low, context.x0_high, (self.n, n_x))
             draws = (steps - 1, self.n, n_x) if sigma_w != 0 and steps > 1 else (0, self.n, n_x)

@@ -23,16 +23,9 @@ import math
 
 import numba
 import numpy as np
+from kkl_bench.estimators.kalman_kernels import all_finite
 
 from kkl_bench.protocol.compiled import rk4_step, sensed_output
-
-
-@numba.njit(cache=True)
-def _all_finite(values):
-    for value in values.ravel():  # noqa: SIM110 (a loop numba compiles)
-        if not math.isfinite(value):
-            return False
-    return True
 
 
 @numba.njit(cache=True)
@@ -160,7 +153,7 @@ def etkf(
                         following[j] = following[j] + sigma_w * noise[k - 1, i, j]
                 constrain(following, p)
                 ensemble[i] = following
-        if _all_finite(y[k]) and _all_finite(ensemble):
+        if all_finite(y[k]) and all_finite(ensemble.ravel()):
             for i in range(members):
                 sensed_output(output, sense, q, s, ensemble[i], predicted[i])
             _mean_over_members(ensemble, mean)
@@ -187,5 +180,5 @@ def etkf(
                 for j in range(n):
                     ensemble[i, j] = mean[j] + inflation * (ensemble[i, j] - mean[j])
         _mean_over_members(ensemble, out[k])
-        if not _all_finite(out[k]):
+        if not all_finite(out[k]):
             break

@@ -142,7 +142,28 @@ def box_prior(context: FitContext) -> tuple[np.ndarray, np.ndarray]:
     return (low + high) / 2.0, np.diag((high - low) ** 2 / 12.0)
 
 
-class KalmanBaseline(CalibratesOnLoggedData, Estimator):
+class TwoEngines:
+    """What a model-based row with two engines (``engine=``) shares: ``model_``, set by its
+    fit, is the compiled model its kernel runs, or None where the reference engine runs."""
+
+    @property
+    def engine_used(self) -> str:
+        """The engine :meth:`estimate` runs: the one asked for, or ``"reference"`` where
+        the system has no compiled model."""
+        return "reference" if getattr(self, "model_", None) is None else "compiled"
+
+    @staticmethod
+    def kernel_inputs(y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``y: (batch, steps, n_y)`` and the input ``u: (batch, steps, 1)`` as the kernels
+        take them: writeable, C-ordered float64 copies (``u`` without its last axis), since
+        numba compiles a kernel anew for read-only arrays."""
+        return (
+            np.array(y, dtype=np.float64, order="C"),
+            np.array(u[..., 0], dtype=np.float64, order="C"),
+        )
+
+
+class KalmanBaseline(TwoEngines, CalibratesOnLoggedData, Estimator):
     """A Kalman filter built for the task's sensor, on one of two engines (the module
     docstring).
 
@@ -233,12 +254,6 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
             for a in inflations
         ]
 
-    @property
-    def engine_used(self) -> str:
-        """The engine :meth:`estimate` runs: the one asked for, or ``"reference"`` where
-        the system has no compiled model."""
-        return "reference" if getattr(self, "model_", None) is None else "compiled"
-
     def fit_report(self) -> dict[str, Any]:
         context = self.check_fitted()
         threshold = self.settings_["threshold"]
@@ -293,10 +308,8 @@ class KalmanBaseline(CalibratesOnLoggedData, Estimator):
         dt = float(t[1] - t[0]) if len(t) > 1 else context.dt
         batch, steps, _ = y.shape
         x_hat = np.full((batch, steps, context.system.n_x), np.nan)
-        if model is not None:  # writeable copies: numba compiles anew for read-only arrays
-            y = np.array(y, dtype=np.float64, order="C")
-            u = np.array(u[..., 0], dtype=np.float64, order="C")
-            self.run_compiled(model, settings, dt, y, u, x_hat)
+        if model is not None:
+            self.run_compiled(model, settings, dt, *self.kernel_inputs(y, u), x_hat)
             return x_hat
         for b in range(batch):
             kalman_filter = self.make_filter(settings, dt)

@@ -98,7 +98,8 @@ def _matmul(a, b, out):
 
 
 @numba.njit(cache=True)
-def _all_finite(values):
+def all_finite(values):
+    """Whether every entry of the one-dimensional ``values`` is finite."""
     for value in values:  # noqa: SIM110 (a loop numba compiles)
         if not math.isfinite(value):
             return False
@@ -176,7 +177,7 @@ def ekf(
                     for i in range(n):
                         for j in range(n):
                             P[i, j] = inflation * (P[i, j] - Q[i, j]) + Q[i, j]
-            if _all_finite(y[b, k]):
+            if all_finite(y[b, k]):
                 _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, H)
                 _matmul(P, H.T, PHT)
                 _matmul(H, PHT, S)
@@ -213,7 +214,7 @@ def ekf(
                     for j in range(n):
                         P[i, j] += FP[i, j]
             out[b, k] = x
-            if not _all_finite(x):
+            if not all_finite(x):
                 break
 
 
@@ -298,7 +299,7 @@ def ukf(
                             P[i, j] = inflation * (P[i, j] - Q[i, j]) + Q[i, j]
                 if not _sigma_points(x, P, spread, root, propagated):
                     break
-            if _all_finite(y[b, k]):
+            if all_finite(y[b, k]):
                 for i in range(count):
                     sensed_output(output, sense, q, s, propagated[i], outputs[i])
                 _unscented_transform(outputs, Wm, Wc, R, zp, S, residuals_z)
@@ -329,5 +330,5 @@ def ukf(
                             total += KS[a, m] * K[c, m]
                         P[a, c] = P[a, c] - total
             out[b, k] = x
-            if not _all_finite(x):
+            if not all_finite(x):
                 break

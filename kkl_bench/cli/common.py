@@ -54,13 +54,24 @@ def seed(text: str) -> int:
     return int(text)
 
 
-def add_results_argument(parser: argparse.ArgumentParser) -> None:
+def add_results_argument(parser: argparse.ArgumentParser, default: Path = Path("results")) -> None:
     parser.add_argument(
         "--results",
         type=Path,
-        default=Path("results"),
+        default=default,
         metavar="DIR",
-        help="results directory (default ./results)",
+        help=f"results directory (default ./{default})",
+    )
+
+
+def add_jobs_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--jobs N``: how many ``what`` run at once, in worker processes (default 1)."""
+    parser.add_argument(
+        "--jobs",
+        type=positive_integer("jobs"),
+        default=1,
+        metavar="N",
+        help=f"run N {what} at once (default 1)",
     )
 
 

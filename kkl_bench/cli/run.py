@@ -16,9 +16,9 @@ from kkl_bench import harness, status
 from kkl_bench.cache import default_cache_dir
 from kkl_bench.cli.common import (
     add_cache_argument,
+    add_jobs_argument,
     add_results_argument,
     names,
-    positive_integer,
     seed,
 )
 from kkl_bench.devices import DEVICES
@@ -77,13 +77,7 @@ def add_parser(commands) -> None:
     )
     add_results_argument(run)
     add_cache_argument(run)
-    run.add_argument(
-        "--jobs",
-        type=positive_integer("jobs"),
-        default=1,
-        metavar="N",
-        help="run N (estimator, system) jobs at once (default 1)",
-    )
+    add_jobs_argument(run, "(estimator, system) jobs")
     run.add_argument(
         "--executor",
         choices=EXECUTORS,

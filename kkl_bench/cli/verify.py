@@ -11,7 +11,13 @@ from pathlib import Path
 from tqdm import tqdm
 
 from kkl_bench import verification
-from kkl_bench.cli.common import add_out_argument, positive_integer, seed
+from kkl_bench.cli.common import (
+    add_jobs_argument,
+    add_out_argument,
+    add_results_argument,
+    positive_integer,
+    seed,
+)
 from kkl_bench.cli.run import showing_jobs
 from kkl_bench.results import provenance
 
@@ -46,13 +52,7 @@ def add_parser(commands) -> None:
         help="the draw of --sample (default: a fresh one, recorded with the verdicts so that "
         "the same cells can be drawn again)",
     )
-    verify.add_argument(
-        "--results",
-        type=Path,
-        default=Path("leaderboard/results"),
-        metavar="DIR",
-        help="the results holding the cells (default leaderboard/results)",
-    )
+    add_results_argument(verify, Path("leaderboard/results"))
     verify.add_argument(
         "--profile", default="standard", help="the profile of the cells (default standard)"
     )
@@ -64,12 +64,7 @@ def add_parser(commands) -> None:
         help="largest relative difference of a trajectory's RMSE still 'within tolerance' "
         f"(default {verification.TOLERANCE:g})",
     )
-    verify.add_argument(
-        "--jobs",
-        type=positive_integer("--jobs"),
-        default=1,
-        help="cells recomputed at a time, in worker processes sharing the model cache (default 1)",
-    )
+    add_jobs_argument(verify, "cell recomputations")
     verify.add_argument(
         "--replace-drifted",
         action="store_true",
