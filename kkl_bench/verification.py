@@ -206,6 +206,23 @@ def latest_run(verifications: pd.DataFrame) -> pd.DataFrame:
     return verifications[verifications["run"] == verifications["run"].max()]
 
 
+def run_to_resume(out_file: Path, selection: str) -> tuple[str, set[str]]:
+    """``(run, cells)``: the latest run recorded in ``out_file`` and the cells it has verdicts
+    for, to go on with an interrupted run of the same ``selection``. Raises
+    :class:`VerifyError` if there is no run or the latest chose its cells otherwise."""
+    verifications = read_verifications(Path(out_file))
+    if verifications is None or verifications.empty:
+        raise VerifyError(f"--resume: no verification run in {out_file} to go on with")
+    latest = latest_run(verifications)
+    recorded = latest["selection"].iloc[0]
+    if recorded != selection:
+        raise VerifyError(
+            f"--resume: the latest run ({latest['run'].iloc[0]}) chose {recorded!r}, this one "
+            f"{selection!r}; give the same cells or --sample and --sample-seed to go on with it"
+        )
+    return latest["run"].iloc[0], set(latest["cell"])
+
+
 def _recompute_timed(path: Path, work: Path, command: str | None) -> tuple:
     """``(path, published, recomputed, its path, seconds)`` for the record at ``path``
     (:func:`recompute`; a job of :func:`verify`, run in a worker when ``jobs > 1``)."""
@@ -226,6 +243,7 @@ def verify(
     command: str | None = None,
     on_cell: Callable[[dict], None] | None = None,
     jobs: int = 1,
+    run: str | None = None,
 ) -> pd.DataFrame:
     """Recompute each cell record of ``paths`` (under ``results_dir``) in the empty folder
     ``work`` (results and model cache, :func:`recompute`; ``jobs`` cells at a time, in
@@ -234,9 +252,11 @@ def verify(
 
     ``selection`` says how the cells were chosen (recorded with each verdict). With
     ``replace_drifted`` a drifted cell's record is replaced by the recomputed one.
-    ``on_cell(row)`` is called after each cell.
+    ``on_cell(row)`` is called after each cell. ``run`` names the run the verdicts join
+    (default a new one, named by the time it starts; :func:`run_to_resume` gives an
+    interrupted one); each verdict records the commit that verified it.
     """
-    run = datetime.now(UTC).isoformat(timespec="seconds")
+    run = run or datetime.now(UTC).isoformat(timespec="seconds")
     commit = provenance()["git_commit"]
     rows = []
     jobs_arguments = [(path, work, command) for path in paths]
@@ -284,9 +304,11 @@ def verification_sentence(verifications: pd.DataFrame | None) -> str:
     counts = latest["verdict"].value_counts()
     tolerances = ", ".join(f"{t:g}" for t in sorted(set(latest["tolerance"])))
     drifted = latest[latest["verdict"] == DRIFTED]
-    commits = ", ".join(f"`{c}`" for c in sorted(set(latest["verified_commit"].astype(str))))
+    verified_at = sorted(set(latest["verified_commit"].astype(str)))
+    commits = ", ".join(f"`{c}`" for c in verified_at)
     sentence = (
-        f"Last verified on {latest['run'].iloc[0][:10]} at commit {commits} by "
+        f"Last verified on {latest['run'].iloc[0][:10]} at commit"
+        f"{'s' if len(verified_at) > 1 else ''} {commits} by "
         f"`kkl-bench verify`: of the cells it chose ({', '.join(sorted(set(latest['selection'])))}), "
         f"{len(latest)} re-derived from an empty model cache: "
         f"{counts.get(IDENTICAL, 0)} identical, "

@@ -115,9 +115,27 @@ def test_a_sample_is_verified_in_parallel_and_the_board_says_what_it_found(resul
     assert sentence in reproduce and f"| `{CELL}.json` | identical " in reproduce
 
 
+def test_an_interrupted_run_goes_on_where_it_stopped(results, capsys):
+    sample = ["--sample", "5", "--sample-seed", "7"]
+    verify(results, *sample)
+    verdicts_file = results.parent / "board" / VERIFICATION_FILE
+    lines = verdicts_file.read_text().splitlines(keepends=True)
+    verdicts_file.write_text("".join(lines[:-1]))  # cut after its first verdict
+    first = read_verifications(verdicts_file)
+    capsys.readouterr()
+
+    status, verdicts = verify(results, *sample, "--resume")
+    assert status == 0
+    assert "1 cell(s) verified before" in capsys.readouterr().err
+    assert len(verdicts) == 2 and verdicts["run"].nunique() == 1  # one run, each cell once
+    assert verdicts.iloc[0].equals(first.iloc[0])  # the verdict before was not recomputed
+    assert sorted(verdicts["cell"]) == [f"{CELL}.json", "ekf/vdp/zero-seed0.json"]
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [
+        ([CELL, "--resume"], "--resume: no verification run in"),
         ([], "name the cells to verify or give --sample N"),
         (["ekf/vdp/sqare-seed0"], "did you mean 'ekf/vdp/square-seed0'?"),
         ([CELL, "--tolerance", "-1"], "--tolerance must be a non-negative number"),

@@ -71,6 +71,13 @@ def add_parser(commands) -> None:
         help="replace each drifted cell's record (and kept estimate) in --results by the "
         "recomputed one (default: report only)",
     )
+    verify.add_argument(
+        "--resume",
+        action="store_true",
+        help="go on with the latest run, interrupted: same cells (or the same --sample and "
+        "--sample-seed); the cells it has verdicts for are not recomputed and the new "
+        "verdicts join that run, each with the commit that verified it",
+    )
     verify.set_defaults(handler=verify_cells)
 
 
@@ -92,8 +99,17 @@ def verify_cells(args: argparse.Namespace) -> int:
         paths = verification.sampled_cells(every, args.sample, draw)
         selection = f"random {len(paths)} of {len(every)} (--sample-seed {draw})"
     commit = provenance()["git_commit"]
-    print(f"verifying {len(paths)} cell(s) at commit {commit}, {selection}", file=sys.stderr)
     out_file = args.out / verification.VERIFICATION_FILE
+    run = None
+    if args.resume:
+        run, done = verification.run_to_resume(out_file, selection)
+        root = args.results / args.profile
+        paths = [path for path in paths if path.relative_to(root).as_posix() not in done]
+        print(
+            f"going on with the run of {run}: {len(done)} cell(s) verified before",
+            file=sys.stderr,
+        )
+    print(f"verifying {len(paths)} cell(s) at commit {commit}, {selection}", file=sys.stderr)
     with (
         tempfile.TemporaryDirectory(prefix="kkl-bench-verify-") as work,
         tqdm(total=len(paths), unit="cell", desc="verify", dynamic_ncols=True) as bar,
@@ -120,6 +136,7 @@ def verify_cells(args: argparse.Namespace) -> int:
             args.command_line,
             on_cell=report,
             jobs=args.jobs,
+            run=run,
         )
     counts = rows["verdict"].value_counts()
     print(
