@@ -39,7 +39,9 @@ sample is always measured (protocol 7.6).
 Every trajectory draws from its own generator, keyed by the seed and its
 first measurement, so estimates are causal, batch-independent and
 reproducible. Work is vectorised over particles and trajectories, in chunks
-of trajectories that bound the memory.
+of trajectories that bound the memory. The compiled engine (``engine='compiled'``)
+moves and reweights the particles in a numba kernel
+(:mod:`kkl_bench.estimators.particle_kernels`) on the same draws, and shares the rest.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from kkl_bench.estimators.kalman import box_prior
+from kkl_bench.estimators import particle_kernels
+from kkl_bench.estimators.kalman import TwoEngines, box_prior, check_engine
 from kkl_bench.estimators.monte_carlo import trajectory_generators
 from scipy.linalg import solve_triangular
 from scipy.special import logsumexp
@@ -305,7 +308,7 @@ def _half_log_det(matrix: np.ndarray) -> float:
 
 
 @estimators.register("particle_filter")
-class ParticleFilter(CalibratesOnLoggedData, Estimator):
+class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
     """Particle filter with the locally optimal proposal (see the module doc).
 
     Parameters
@@ -313,6 +316,10 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
     n: particles per trajectory.
     proposal: ``"optimal"`` (default) or ``"bootstrap"`` (the transition; for comparison).
     resample_below: resample when the effective sample size falls below this fraction of ``n``.
+    engine: ``"reference"`` (numpy, the published cells') or ``"compiled"``: each step's
+        transition, proposal and weights in a numba kernel over the system's compiled
+        model, on the same random numbers (:mod:`kkl_bench.estimators.particle_kernels`);
+        a system without a compiled model runs the reference engine.
     """
 
     name = "particle_filter"
@@ -321,11 +328,17 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
     bayes_limit = True
 
     def __init__(
-        self, n: int = 10000, proposal: str = "optimal", resample_below: float = 0.5
+        self,
+        n: int = 10000,
+        proposal: str = "optimal",
+        resample_below: float = 0.5,
+        engine: str = "reference",
     ) -> None:
         self.n = n
         self.proposal = proposal
         self.resample_below = resample_below
+        self.engine = engine
+        check_engine("particle_filter", engine)
         if not (isinstance(n, int) and n >= 1):
             raise ValueError(f"particle_filter: n={n!r} must be a positive integer")
         if proposal not in PROPOSALS:
@@ -347,8 +360,18 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
             )
         return super().unsupported_reason(system, measurement)
 
+    def fit(self, context):
+        super().fit(context)
+        self.model_ = self.check_fitted().system.compiled() if self.engine == "compiled" else None
+        return self
+
     def fit_report(self):
-        return {**super().fit_report(), "particles": self.n, "proposal": self.proposal}
+        return {
+            **super().fit_report(),
+            "particles": self.n,
+            "proposal": self.proposal,
+            "engine": self.engine_used,
+        }
 
     def flops_per_step(self) -> float:
         """Flops of one trajectory-step: per particle, the RK4 step, the proposal's mean
@@ -377,7 +400,6 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
         """Posterior means ``(batch, steps, n_x)`` for ``y: (batch, steps, n_y)``, ``u: (batch, steps, 1)``."""
         context = self.check_fitted()
         measurement = context.measurement
-        q, r = context.sigma_w**2, measurement.variance
         mixture = measurement.mixture if system.n_y == 1 else None  # one output only
         generators = trajectory_generators(context.seed, y[:, 0])
 
@@ -391,44 +413,21 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
         x_hat = np.full((batch, steps, system.n_x), np.nan)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             particles, log_weights = self._initial(
-                system, y[:, 0], mixture or ((1.0, r),), normals, uniforms
+                system, y[:, 0], mixture or ((1.0, measurement.variance),), normals, uniforms
             )
             for k in range(steps):
                 if k > 0:
-                    mean = rk4_step(
-                        system, particles, np.broadcast_to(u[:, k - 1], (batch, self.n)), dt
+                    step = self._step_reference if self.model_ is None else self._step_compiled
+                    particles, log_weights = step(
+                        particles,
+                        log_weights,
+                        u[:, k - 1, 0],
+                        y[:, k],
+                        dt,
+                        mixture,
+                        normals,
+                        uniforms,
                     )
-                    observed = y[:, k, None, :]
-                    present = np.isfinite(y[:, k]).all(axis=-1)[:, None]  # (batch, 1)
-                    if self.proposal == "optimal" and present.any():
-                        arguments = (
-                            system,
-                            mean,
-                            np.where(present[..., None], observed, 0.0),
-                            q,
-                        )
-                        if mixture is None:
-                            sample, log_ratio = optimal_proposal(
-                                *arguments, r, normals(system.n_x), normals(system.n_y)
-                            )
-                        else:
-                            sample, log_ratio = mixture_proposal(
-                                *arguments,
-                                mixture,
-                                normals(system.n_x),
-                                normals(system.n_y),
-                                uniforms(),
-                            )
-                        if not present.all():  # (draws only then: the stream stays v1's)
-                            transition = mean + np.sqrt(q) * normals(system.n_x)
-                            sample = np.where(present[..., None], sample, transition)
-                            log_ratio = np.where(present, log_ratio, 0.0)
-                    else:
-                        sample, log_ratio = mean + np.sqrt(q) * normals(system.n_x), 0.0
-                    particles = system.constrain(sample)
-                    log_likelihood = measurement.log_density(observed, system.h(particles))
-                    log_likelihood = np.where(present, log_likelihood, 0.0)
-                    log_weights = log_weights + log_likelihood - log_ratio
                 log_weights = log_weights - logsumexp(log_weights, axis=1, keepdims=True)
                 weights = np.exp(log_weights)
                 x_hat[:, k] = np.einsum("bn,bnx->bx", weights, particles)
@@ -440,6 +439,68 @@ class ParticleFilter(CalibratesOnLoggedData, Estimator):
         return np.where(
             np.isnan(x_hat).any(axis=-1, keepdims=True).cumsum(axis=1) > 0, np.nan, x_hat
         )
+
+    def _step_reference(self, particles, log_weights, u, y, dt, mixture, normals, uniforms):
+        """``(particles, log_weights)`` one step on: every particle moved (transition, or
+        the proposal where measured) and reweighted by its measurement ``y: (batch, n_y)``
+        (NaN where absent), ``u: (batch,)`` held over the step; ``mixture`` the noise law's
+        components for the proposal (None for one Gaussian); ``normals(dim)`` and
+        ``uniforms()`` each trajectory's draws (numpy)."""
+        context = self.check_fitted()
+        system, measurement = context.system, context.measurement
+        q, r = context.sigma_w**2, measurement.variance
+        batch = y.shape[0]
+        mean = rk4_step(system, particles, np.broadcast_to(u[:, None], (batch, self.n)), dt)
+        observed = y[:, None, :]
+        present = np.isfinite(y).all(axis=-1)[:, None]  # (batch, 1)
+        if self.proposal == "optimal" and present.any():
+            arguments = (system, mean, np.where(present[..., None], observed, 0.0), q)
+            if mixture is None:
+                sample, log_ratio = optimal_proposal(
+                    *arguments, r, normals(system.n_x), normals(system.n_y)
+                )
+            else:
+                sample, log_ratio = mixture_proposal(
+                    *arguments, mixture, normals(system.n_x), normals(system.n_y), uniforms()
+                )
+            if not present.all():  # (draws only then: the stream stays v1's)
+                transition = mean + np.sqrt(q) * normals(system.n_x)
+                sample = np.where(present[..., None], sample, transition)
+                log_ratio = np.where(present, log_ratio, 0.0)
+        else:
+            sample, log_ratio = mean + np.sqrt(q) * normals(system.n_x), 0.0
+        particles = system.constrain(sample)
+        log_likelihood = measurement.log_density(observed, system.h(particles))
+        log_likelihood = np.where(present, log_likelihood, 0.0)
+        return particles, log_weights + log_likelihood - log_ratio
+
+    def _step_compiled(self, particles, log_weights, u, y, dt, mixture, normals, uniforms):
+        """:meth:`_step_reference` by the compiled kernel
+        (:func:`~kkl_bench.estimators.particle_kernels.propagate`), on the same draws."""
+        context = self.check_fitted()
+        model, measurement = self.model_, context.measurement
+        present = np.isfinite(y).all(axis=-1)
+        proposing = self.proposal == "optimal" and bool(present.any())
+        nothing = np.empty((0, 0, 0))
+        w, v, uniform, transition = normals(model.n_x), nothing, np.empty((0, 0)), nothing
+        if proposing:
+            v = normals(model.n_y)
+            if mixture is not None:
+                uniform = uniforms()
+            if not present.all():
+                transition = normals(model.n_x)
+        components = np.array(mixture or ((1.0, measurement.variance),), dtype=np.float64)
+        law, constants = particle_kernels.noise_law_constants(measurement.noise)
+        particles = np.array(particles, dtype=np.float64, order="C")
+        log_weights = np.array(log_weights, dtype=np.float64, order="C")
+        particle_kernels.propagate(
+            model.drift, model.output, model.output_jacobian, model.sense, model.sense_slope,
+            model.constrain, model.p, model.q, model.s, model.g, particles, log_weights,
+            np.ascontiguousarray(u, dtype=np.float64), dt, np.ascontiguousarray(y), present,
+            float(context.sigma_w**2), components, proposing, law, constants, w, v, uniform,
+            transition,
+        )  # fmt: skip
+        return particles, log_weights
 
     def _initial(self, system: System, y0: np.ndarray, components, normals, uniforms):
         """Particles ``(batch, n, n_x)`` and log weights ``(batch, n)`` for the first sample
