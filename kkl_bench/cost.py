@@ -22,8 +22,8 @@ place of the cells' own times.
 A row's cost is its algorithm's, not its Python loop's (protocol 6.3): a model-based row
 with engines (``engine=`` of ``ekf`` and ``ukf``) is timed on its compiled engine, and
 its reference engine (filterpy) is timed beside it in the same run. Every row also
-carries its arithmetic where it is counted: the flops of one trajectory-step (the
-estimator's own count, ``flops_per_step()``; the filters have one, the networks not yet:
+carries its arithmetic: the flops of one trajectory-step (the filters' own count,
+``flops_per_step()``; a network's matrix products by its layer sizes,
 :func:`counted_flops`), this machine's peak in the row's precision measured in the same
 run (:func:`peak_gflops`), the floor they imply, and the row's cost over that floor.
 """
@@ -42,7 +42,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from kkl_bench import families, variants
+from kkl_bench import families, flops, variants
 from kkl_bench.executors import thread_limit
 from kkl_bench.registry import estimators
 from kkl_bench.results import provenance
@@ -156,15 +156,16 @@ def peak_gflops(precision: str, threads: int = 1, rounds: int = 5) -> float:
     return 2 * PEAK_SIZE**3 / best / 1e9
 
 
-def counted_flops(estimator) -> tuple[float, str]:
-    """``(flops per trajectory-step, precision)`` of a fitted estimator: its own
-    ``flops_per_step()`` (the filters count theirs, in float64), else NaN in float32 (a
-    network: torch's flop counter misses the LSTM and the injection observer's forced
-    path, so the networks' counts wait for their layer sizes; protocol 6.3)."""
+def counted_flops(estimator, data) -> tuple[float, str]:
+    """``(flops per trajectory-step, precision)`` of a fitted estimator on the test set
+    ``data``: its own ``flops_per_step()`` where it declares one (the filters, in
+    float64), else the matrix products one ``estimate`` on ``data`` runs, counted by the
+    layer sizes (:func:`kkl_bench.flops.counted`; a network, in float32)."""
     declared = getattr(estimator, "flops_per_step", None)
     if declared is not None:
         return declared(), "float64"
-    return math.nan, "float32"
+    total = flops.counted(lambda: estimator.estimate(data.t, data.y, data.u))
+    return total / data.y[..., 0].size, "float32"
 
 
 def timed_variants(name: str) -> dict[str, str]:
@@ -229,7 +230,7 @@ def measure(
             warm_up(fitted[name, engine, task.system], test_sets[task])
     row_engine = {name: next(iter(engines[name])) for name in timed}  # compiled if any
     arithmetic = {
-        (name, task): counted_flops(fitted[name, row_engine[name], task.system])
+        (name, task): counted_flops(fitted[name, row_engine[name], task.system], test_sets[task])
         for name in tqdm(spec.estimators, desc="counting flops", unit="row")
         for task in test_sets
     }
@@ -244,8 +245,8 @@ def measure(
             if name not in spec.estimators or engine != row_engine[name]:
                 continue
             data = test_sets[task]
-            flops, precision = arithmetic[name, task]
-            floor = flops / (peaks[precision] * 1e3)  # µs per trajectory-step
+            arithmetic_flops, precision = arithmetic[name, task]
+            floor = arithmetic_flops / (peaks[precision] * 1e3)  # µs per trajectory-step
             cost = _per_step(seconds, data)
             reference_engine = best.get((name, "reference", task), math.nan)
             measured.append(
@@ -269,7 +270,7 @@ def measure(
                     "reference_engine_us_per_trajectory_step": (
                         _per_step(reference_engine, data) if engine == "compiled" else math.nan
                     ),
-                    "flops_per_trajectory_step": flops,
+                    "flops_per_trajectory_step": arithmetic_flops,
                     "precision": precision,
                     "peak_gflops": peaks[precision],
                     "floor_us_per_trajectory_step": floor,

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from kkl_bench import cost
 from kkl_bench.cli import main
@@ -177,18 +180,20 @@ def test_cost_command_merges_its_rows_and_times_the_ekf_beside_them(tmp_path, ca
     assert cost.read_costs(tmp_path / "missing.csv") is None
 
 
-def test_flops_are_what_an_estimator_declares_and_unknown_otherwise():
-    class Network:  # declares nothing
+def test_flops_are_what_an_estimator_declares_or_its_layer_sizes_give():
+    layer = torch.nn.Linear(2, 8)
+
+    class Network:  # declares nothing: its products are counted on the test set
         def estimate(self, t, y, u):
-            return y
+            return layer(torch.as_tensor(y, dtype=torch.float32).expand(*y.shape[:2], 2))
 
     class Declared(Network):
         def flops_per_step(self):
             return 123.0
 
-    flops, precision = cost.counted_flops(Network())
-    assert np.isnan(flops) and precision == "float32"
-    assert cost.counted_flops(Declared()) == (123.0, "float64")
+    data = SimpleNamespace(t=np.arange(5.0), y=np.zeros((3, 5, 1)), u=np.zeros((3, 5, 1)))
+    assert cost.counted_flops(Network(), data) == (2 * 2 * 8, "float32")
+    assert cost.counted_flops(Declared(), data) == (123.0, "float64")
     with pytest.raises(ValueError, match=r"float16.*float32, float64"):
         cost.peak_gflops("float16")
 
@@ -204,9 +209,9 @@ def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_and_floor(t
     assert (ukf["reference_engine_us_per_trajectory_step"] > ukf["us_per_trajectory_step"]).all()
     assert (kkl["engine"] == "torch").all() and (kkl["precision"] == "float32").all()
     assert kkl["reference_engine_us_per_trajectory_step"].isna().all()
-    assert kkl["flops_per_trajectory_step"].isna().all() and (kkl["peak_gflops"] > 0).all()
-    assert (ukf["flops_per_trajectory_step"] > 0).all() and (ukf["peak_gflops"] > 0).all()
-    floor = ukf["flops_per_trajectory_step"] / (ukf["peak_gflops"] * 1e3)
-    np.testing.assert_allclose(ukf["floor_us_per_trajectory_step"], floor, rtol=1e-5)
-    ratio = ukf["us_per_trajectory_step"] / floor  # the file keeps 6 digits
-    np.testing.assert_allclose(ukf["over_floor"], ratio, rtol=1e-5)
+    for row in (ukf, kkl):  # both counted: the filter by its algorithm, the network by layers
+        assert (row["flops_per_trajectory_step"] > 0).all() and (row["peak_gflops"] > 0).all()
+        floor = row["flops_per_trajectory_step"] / (row["peak_gflops"] * 1e3)
+        np.testing.assert_allclose(row["floor_us_per_trajectory_step"], floor, rtol=1e-5)
+        ratio = row["us_per_trajectory_step"] / floor  # the file keeps 6 digits
+        np.testing.assert_allclose(row["over_floor"], ratio, rtol=1e-5)

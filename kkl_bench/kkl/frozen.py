@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from kkl_bench import flops
 from kkl_bench.kkl.networks import NormalizedMLP
 
 
@@ -127,6 +128,7 @@ class FrozenMLP:
         h = np.asarray(x, dtype=np.float32)
         last = len(self.weights) - 1
         for i, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            flops.add(flops.products(h.size // weight.shape[0], *weight.shape))
             h = h @ weight
             h += bias
             if i == 0 and offset is not None:
@@ -149,7 +151,10 @@ class FrozenMLP:
         np.matmul(np.asarray(x, dtype=np.float32), weight, out=value)
         value += bias
         tangent[:] = np.asarray(v, dtype=np.float32) @ weight
+        directions = 1 if np.ndim(v) == 1 else batch
+        flops.add(flops.products(batch + directions, *weight.shape))
         for weight, bias in zip(self.weights[1:], self.biases[1:], strict=True):
+            flops.add(flops.products(2 * batch, *weight.shape))
             _silu_with_tangent_in_place(value, tangent)
             stacked = stacked @ weight
             value, tangent = stacked[:batch], stacked[batch:]

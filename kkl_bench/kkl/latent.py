@@ -18,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.linalg import expm
 
+from kkl_bench import flops
 from kkl_bench.measurement import held
 
 
@@ -95,13 +96,17 @@ class LatentObserver:
         z = np.empty((y.shape[0], y.shape[1], self.n_z))
         z[:, 0] = self.initial_state(y[:, 0])
         drive = y[:, :-1] @ self.gamma0.T + np.diff(y, axis=1) @ self.gamma1.T
-        if self._diagonal:
+        batch, steps, n_y = y.shape
+        flops.add(2 * flops.products(batch * (steps - 1), n_y, self.n_z))
+        if self._diagonal:  # elementwise: not counted (kkl_bench.flops)
             phi, gain = np.diag(self.phi), np.diag(self.injection_gain)
 
             def apply(matrix: np.ndarray, v: np.ndarray) -> np.ndarray:
                 return v * matrix
         else:
             phi, gain = self.phi, self.injection_gain
+            products = (2 if injection is not None else 1) * (steps - 1)
+            flops.add(products * flops.products(batch, self.n_z, self.n_z))
 
             def apply(matrix: np.ndarray, v: np.ndarray) -> np.ndarray:
                 return v @ matrix.T
