@@ -368,12 +368,14 @@ def test_a_board_says_what_its_runs_were_and_what_it_is(tmp_path, capsys):
     assert main(["publish", "--results", str(results), "--out", str(out)]) == 0
     readme = (out / "README.md").read_text()
     reproduce = readme.split("## Reproduce")[1]
-    rows = {line.split("|")[1].strip(): line for line in reproduce.splitlines() if "| `" in line}
+    runs = reproduce.split("| Row ")[1].split("\n\n")[0]  # the runs table, not the dirty one
+    rows = {line.split("|")[1].strip(): line for line in runs.splitlines() if "| `" in line}
     assert set(rows) == {"`ekf`", "`fails_on_seed_one`"}
     ekf = [cell.strip() for cell in rows["`ekf`"].split("|")[1:-1]]
     assert ekf[1:3] == ["0 on paper, far-init", "2"]
+    assert ekf[4] == ""  # a filter trains nothing
     assert (
-        ekf[4]
+        ekf[5]
         == f"`kkl-bench run --estimator ekf --system vdp --regime zero --track paper far-init --results {results}`"
     )
     failing = [cell.strip() for cell in rows["`fails_on_seed_one`"].split("|")[1:-1]]

@@ -58,7 +58,8 @@ class Board:
     scaling_study: ``scaling.md`` stands beside the board; costs: the paper track's rows of
     its ``cost.csv``, if any; verifications: the rows of its ``verification.csv``
     (:mod:`kkl_bench.verification`), if any; scaling_panel: the scaling study's panel
-    (:func:`kkl_bench.report.scaling.study_panel`), if the folder holds the study.
+    (:func:`kkl_bench.report.scaling.study_panel`), if the folder holds the study;
+    every_cell: the cells of every track (what the Reproduce section reads).
     """
 
     summary: pd.DataFrame
@@ -75,6 +76,7 @@ class Board:
     costs: pd.DataFrame | None = None
     verifications: pd.DataFrame | None = None
     scaling_panel: Section | None = None
+    every_cell: pd.DataFrame | None = None
 
 
 SMOKE_BANNER = (

@@ -7,7 +7,7 @@ import pandas as pd
 
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report.board import Board
-from kkl_bench.report.model import Section, Table, Text
+from kkl_bench.report.model import HTML, Section, Table, Text
 from kkl_bench.verification import VERDICT_COLUMNS, latest_run, verification_sentence
 
 NOT_RECORDED = "not recorded"
@@ -15,10 +15,75 @@ NOT_RECORDED = "not recorded"
 
 RUNS_TEXT = (
     "The runs behind these results, as their cells record them: per row, the seeds it ran "
-    "on each track, the cells read here, the commits that wrote them and the command lines of "
-    f"their runs (`{NOT_RECORDED}`: cells written before `kkl-bench run` recorded its "
-    "command line)."
+    "on each track, the cells read here, the commits that wrote (scored) them, the commits "
+    "whose code trained the models they used (with how many cells each; read from the "
+    "training each cell records, `fit_report.spent`) and the command lines of their runs "
+    f"(`{NOT_RECORDED}`: cells written before `kkl-bench run` recorded its command line, or "
+    "its models' training commit)."
 )
+DIRTY = "-dirty"
+"""The suffix of a commit whose checkout had uncommitted changes (:func:`kkl_bench.results.provenance`)."""
+
+
+def training_commits(fit_report: dict | None) -> set[str]:
+    """The commits whose code trained a cell's model, as its fit report's ``spent``
+    records them per phase (empty where it records none: a filter, or an older cell)."""
+    spent = (fit_report or {}).get("spent") or {}
+    return {
+        str(phase["git_commit"])
+        for phase in spent.values()
+        if isinstance(phase, dict) and phase.get("git_commit")
+    }
+
+
+def _trained_by(reports) -> str:
+    """``41fe503615c0 (462); not recorded (330)``: the training commits of a row's cells
+    (``reports``: their fit reports) with how many cells each, empty if no cell trains."""
+    counts: dict[str, int] = {}
+    for report in reports:
+        for commit in training_commits(report) or {NOT_RECORDED}:
+            counts[commit] = counts.get(commit, 0) + 1
+    if set(counts) == {NOT_RECORDED} and not any((r or {}).get("spent") for r in reports):
+        return ""  # nothing trained (a filter)
+    recorded = sorted(c for c in counts if c != NOT_RECORDED)
+    parts = [f"`{c}` ({counts[c]})" for c in recorded]
+    if NOT_RECORDED in counts:
+        parts.append(f"{NOT_RECORDED} ({counts[NOT_RECORDED]})")
+    return "; ".join(parts)
+
+
+def dirty_cells(results: pd.DataFrame) -> pd.DataFrame:
+    """The cells made by code with uncommitted changes: scored, or whose model was trained,
+    from a ``-dirty`` checkout. Columns ``cell`` (row, system, track, task, seed),
+    ``scored`` and ``trained`` (the dirty commits, empty where that step was clean)."""
+    rows = []
+    for _, cell in results.iterrows():
+        scored = str(cell["provenance"].get("git_commit"))
+        trained = sorted(c for c in training_commits(cell.get("fit_report")) if c.endswith(DIRTY))
+        if scored.endswith(DIRTY) or trained:
+            rows.append(
+                {
+                    "cell": f"`{cell['estimator']}` {cell['system']} {cell['track']} "
+                    f"{cell['regime']} seed {cell['seed']}",
+                    "scored": scored if scored.endswith(DIRTY) else "",
+                    "trained": ", ".join(trained),
+                }
+            )
+    return pd.DataFrame(rows, columns=["cell", "scored", "trained"])
+
+
+def dirty_sentence(dirty: pd.DataFrame, total: int) -> str:
+    """What the board says of its cells made from uncommitted code (:func:`dirty_cells`)."""
+    if dirty.empty:
+        return f"Every one of the {total} cells was scored, and its model trained, from a committed tree."
+    scored = int((dirty["scored"] != "").sum())
+    trained = int((dirty["trained"] != "").sum())
+    return (
+        f"{len(dirty)} of the {total} cells were made by code with uncommitted changes "
+        f"(a commit ending `{DIRTY}`): {scored} scored and {trained} trained from such a "
+        "tree; their numbers cannot be re-derived from a commit alone (`kkl-bench verify` "
+        "re-derives them from the current one). Per row (each cell on the page):"
+    )
 
 
 def failed_seeds(results: pd.DataFrame) -> dict[str, list[int]]:
@@ -48,6 +113,7 @@ def runs_frame(results: pd.DataFrame) -> pd.DataFrame:
         for track in _in_track_order(set(seeds.index)):
             by_seeds.setdefault(seeds[track], []).append(track)
         commands = dict.fromkeys(cells["command"])
+        reports = cells["fit_report"] if "fit_report" in cells else [None] * len(cells)
         rows.append(
             {
                 "estimator": f"`{name}`",
@@ -56,6 +122,7 @@ def runs_frame(results: pd.DataFrame) -> pd.DataFrame:
                 ),
                 "cells": len(cells),
                 "commits": ", ".join(sorted(set(cells["commit"]))),
+                "trained": _trained_by(list(reports)),
                 "commands": "<br>".join(c if c == NOT_RECORDED else f"`{c}`" for c in commands),
             }
         )
@@ -67,6 +134,7 @@ RUN_COLUMNS = {
     "seeds": "Seeds on tracks",
     "cells": "Cells",
     "commits": "Commits",
+    "trained": "Trained by",
     "commands": "Command lines",
 }
 
@@ -88,6 +156,22 @@ def provenance_sections(board: Board) -> list[Section]:
         (key, ", ".join(values)) for key, values in _versions(board.results).items()
     ]
     versions = pd.DataFrame(facts, columns=["what", "value"])
+    cells = board.every_cell if board.every_cell is not None else board.results
+    dirty = dirty_cells(cells)
+    listed = [Text(dirty_sentence(dirty, len(cells)))]
+    if not dirty.empty:
+        per_row = (
+            dirty.assign(row=dirty["cell"].str.split(" ").str[0])
+            .groupby(["row", "scored", "trained"], sort=False)
+            .size()
+            .reset_index(name="cells")
+        )
+        columns = {"scored": "Scored at", "trained": "Trained at"}
+        listed.append(Table(per_row, {"row": "Row", **columns, "cells": "Cells"}, id="dirty-rows"))
+        folded = f"Every cell made from uncommitted code ({len(dirty)} rows)"
+        listed.append(
+            Table(dirty, {"cell": "Cell", **columns}, id="dirty-cells", folded=folded, only=HTML)
+        )
     checked = [Text(verification_sentence(board.verifications))]
     if board.verifications is not None and not board.verifications.empty:
         latest = latest_run(board.verifications).assign(
@@ -98,6 +182,6 @@ def provenance_sections(board: Board) -> list[Section]:
         Section("Provenance", [Table(versions, id="provenance")]),
         Section(
             "Reproduce",
-            [Text(RUNS_TEXT), Table(board.runs, RUN_COLUMNS, id="runs"), *checked],
+            [Text(RUNS_TEXT), Table(board.runs, RUN_COLUMNS, id="runs"), *listed, *checked],
         ),
     ]

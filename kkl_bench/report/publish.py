@@ -127,6 +127,7 @@ def publish(
         costs=costs,
         verifications=read_verifications(out / VERIFICATION_FILE),
         scaling_panel=study_panel(out, profile),
+        every_cell=results,
     )
     parts = sections(board)
     written = {

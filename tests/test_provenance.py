@@ -1,0 +1,71 @@
+"""The Reproduce section's facts read from the cells: who trained a model, what was dirty."""
+
+import pandas as pd
+
+from kkl_bench.report.provenance import (
+    NOT_RECORDED,
+    dirty_cells,
+    dirty_sentence,
+    runs_frame,
+    training_commits,
+)
+
+
+def cell(estimator, scored, trained=None, seed=0):
+    """A results row: scored at commit ``scored``, its model trained at ``trained``
+    (per phase; None: no training recorded)."""
+    spent = (
+        None if trained is None else {f"phase{i}": {"git_commit": c} for i, c in enumerate(trained)}
+    )
+    return {
+        "estimator": estimator,
+        "system": "vdp",
+        "track": "paper",
+        "regime": "sinusoid",
+        "seed": seed,
+        "provenance": {"git_commit": scored, "command": "kkl-bench run"},
+        "fit_report": {} if spent is None else {"spent": spent},
+    }
+
+
+def test_the_training_commits_are_read_per_phase():
+    report = {"spent": {"phase1": {"git_commit": "a"}, "phase2": {"git_commit": "b-dirty"}}}
+    assert training_commits(report) == {"a", "b-dirty"}
+    assert training_commits({"spent": {"phase2": {"steps": 4000}}}) == set()  # older cells
+    assert training_commits(None) == set()
+
+
+def test_a_row_says_which_commits_trained_its_models_and_how_many_cells_each():
+    results = pd.DataFrame(
+        [
+            cell("kkl", "c1", ["t1", "t1"]),
+            cell("kkl", "c1", ["t1", "t1"], seed=1),
+            cell("kkl", "c0", [], seed=2),  # trained before the commit was recorded
+            cell("ekf", "c1"),
+        ]
+    )
+    trained = runs_frame(results).set_index("estimator")["trained"]
+    assert trained["`kkl`"] == f"`t1` (2); {NOT_RECORDED} (1)"
+    assert trained["`ekf`"] == ""  # a filter trains nothing
+
+
+def test_cells_made_from_uncommitted_code_are_listed():
+    results = pd.DataFrame(
+        [
+            cell("kkl", "c1-dirty", ["t1"]),  # scored dirty
+            cell("kkl", "c1", ["t1-dirty"], seed=1),  # trained dirty
+            cell("kkl", "c1", ["t1"], seed=2),  # clean
+        ]
+    )
+    dirty = dirty_cells(results)
+    assert dirty.values.tolist() == [
+        ["`kkl` vdp paper sinusoid seed 0", "c1-dirty", ""],
+        ["`kkl` vdp paper sinusoid seed 1", "", "t1-dirty"],
+    ]
+    assert dirty_sentence(dirty, 3).startswith(
+        "2 of the 3 cells were made by code with uncommitted changes (a commit ending "
+        "`-dirty`): 1 scored and 1 trained from such a tree"
+    )
+    assert dirty_sentence(dirty.iloc[:0], 3) == (
+        "Every one of the 3 cells was scored, and its model trained, from a committed tree."
+    )
