@@ -152,6 +152,21 @@ def verdict_of(
     return (WITHIN if difference <= tolerance else DRIFTED), difference
 
 
+BUDGET = ("steps", "samples")
+"""What a fit report's ``spent`` says of the training budget, per phase (the rest of it,
+the seconds, device and commit, differs from one training to the next)."""
+
+
+def training_budget(fit_report: dict) -> dict:
+    """The steps and samples each training phase of ``fit_report`` spent (:data:`BUDGET`)."""
+    spent = fit_report.get("spent") or {}
+    return {
+        phase: {key: record.get(key) for key in BUDGET}
+        for phase, record in spent.items()
+        if isinstance(record, dict)
+    }
+
+
 def cause_of(published: CellResult, recomputed: CellResult) -> str:
     """What differs between how the two records were made, as far as they say: the status,
     the test set, the training spent or the chosen settings; empty if nothing they record
@@ -164,9 +179,13 @@ def cause_of(published: CellResult, recomputed: CellResult) -> str:
     if published.test_set_fingerprint != recomputed.test_set_fingerprint:
         return "other test trajectories"
     before, after = published.fit_report, recomputed.fit_report
-    if before.get("spent") != after.get("spent"):
+    if training_budget(before) != training_budget(after):
         return "another training budget (fit_report.spent differs)"
-    changed = sorted(key for key in set(before) | set(after) if before.get(key) != after.get(key))
+    changed = sorted(
+        key
+        for key in set(before) | set(after)
+        if key != "spent" and before.get(key) != after.get(key)
+    )
     if changed:
         return "fit report differs in " + ", ".join(changed)
     return ""

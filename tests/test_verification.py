@@ -1,6 +1,7 @@
 """``kkl-bench verify``: a cell it has just written is re-derived identical; a changed number
 is found, measured and (if asked) replaced; the verdicts reach the board's sentence."""
 
+import dataclasses
 import json
 import math
 import shutil
@@ -16,6 +17,7 @@ from kkl_bench.verification import (
     IDENTICAL,
     VERIFICATION_FILE,
     WITHIN,
+    cause_of,
     largest_relative_difference,
     read_verifications,
     recompute,
@@ -130,6 +132,21 @@ def test_an_interrupted_run_goes_on_where_it_stopped(results, capsys):
     assert len(verdicts) == 2 and verdicts["run"].nunique() == 1  # one run, each cell once
     assert verdicts.iloc[0].equals(first.iloc[0])  # the verdict before was not recomputed
     assert sorted(verdicts["cell"]) == [f"{CELL}.json", "ekf/vdp/zero-seed0.json"]
+
+
+def test_a_drift_is_blamed_on_the_budget_only_when_the_steps_or_samples_differ(results):
+    published = read_cell(results / "quick" / f"{CELL}.json")
+    spent = {"phase2": {"steps": 4000, "samples": 10, "seconds": 1.0, "git_commit": "a"}}
+
+    def made(steps, seconds, **report):
+        phase = {**spent["phase2"], "steps": steps, "seconds": seconds}
+        return dataclasses.replace(published, fit_report={"spent": {"phase2": phase}, **report})
+
+    assert cause_of(made(4000, 1.0), made(8000, 1.0)).startswith("another training budget")
+    assert cause_of(made(4000, 1.0), made(4000, 9.0)) == ""  # another training's seconds
+    assert (
+        cause_of(made(4000, 1.0, gain=1), made(4000, 9.0, gain=2)) == "fit report differs in gain"
+    )
 
 
 @pytest.mark.parametrize(
