@@ -25,7 +25,11 @@ import math
 
 import numba
 import numpy as np
-from kkl_bench.estimators.kalman_kernels import _invert, _sensed_output_jacobian
+from kkl_bench.estimators.kalman_kernels import (
+    _invert,
+    _sensed_output_jacobian,
+    _upper_cholesky,
+)
 
 from kkl_bench.protocol.compiled import rk4_step, sensed_output
 
@@ -37,17 +41,8 @@ LOG_2PI = math.log(2 * math.pi)
 def noise_law_constants(noise) -> tuple[int, np.ndarray]:
     """``(code, constants)`` of a :class:`~kkl_bench.measurement.NoiseLaw` for
     :func:`log_likelihood`, computed as its numpy ``log_density`` computes them."""
-    from scipy import special
-
     if noise.law == "student-t":
-        nu = noise.dof
-        log_norm = (
-            special.gammaln((nu + 1) / 2)
-            - special.gammaln(nu / 2)
-            - 0.5 * math.log(nu * math.pi)
-            - math.log(noise.sigma)
-        )
-        return STUDENT_T, np.array([noise.sigma, nu, log_norm])
+        return STUDENT_T, np.array([noise.sigma, noise.dof, noise.student_t_log_norm])
     if noise.law == "outliers":
         p, s = noise.outlier_fraction, noise.outlier_scale
         log_outlier = math.log(p) - math.log(s) if p > 0 else -math.inf
@@ -97,20 +92,13 @@ def log_likelihood(residual, law, constants, gaussian_norm):
 
 @numba.njit(cache=True, error_model="numpy")
 def _log_det(matrix, work):
-    """``log det`` of a symmetric positive definite ``matrix`` (Cholesky into ``work``)."""
-    n = matrix.shape[0]
+    """``log det`` of a symmetric positive definite ``matrix`` (its Cholesky factor into
+    ``work``); NaN if it is not positive definite."""
+    if not _upper_cholesky(matrix, work):
+        return math.nan
     total = 0.0
-    for j in range(n):
-        diagonal = matrix[j, j]
-        for k in range(j):
-            diagonal -= work[j, k] * work[j, k]
-        work[j, j] = math.sqrt(diagonal)
+    for j in range(matrix.shape[0]):
         total += 2.0 * math.log(work[j, j])
-        for i in range(j + 1, n):
-            value = matrix[i, j]
-            for k in range(j):
-                value -= work[i, k] * work[j, k]
-            work[i, j] = value / work[j, j]
     return total
 
 
@@ -175,24 +163,22 @@ def _draw(mean, H, gain, innovation, root_q, root_r, w, v, out, process):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _proposal_log_density(sample, mean, gain, innovation, H, q, r, log_det_precision, norm):
+def _proposal_log_density(sample, mean, gain, innovation, H, q, r, log_det_precision, norm, offset):
     """``log q(sample)`` of one Gaussian proposal, whose mean is ``mean + gain e``
-    (``_GaussianProposal.log_density``; ``norm = n log(2 pi)``)."""
+    (``_GaussianProposal.log_density``; ``norm = n log(2 pi)``; ``offset: (n,)`` scratch)."""
     n_y, n = H.shape
     offset_sum = 0.0
     for i in range(n):
         correction = 0.0
         for j in range(n_y):
             correction += gain[i, j] * innovation[j]
-        offset_sum += (sample[i] - (mean[i] + correction)) ** 2
+        offset[i] = sample[i] - (mean[i] + correction)
+        offset_sum += offset[i] ** 2
     projected_sum = 0.0
     for j in range(n_y):
         along = 0.0
         for i in range(n):
-            correction = 0.0
-            for m in range(n_y):
-                correction += gain[i, m] * innovation[m]
-            along += H[j, i] * (sample[i] - (mean[i] + correction))
+            along += H[j, i] * offset[i]
         projected_sum += along**2
     quadratic = offset_sum / q + projected_sum / r
     return 0.5 * (log_det_precision - quadratic - norm)
@@ -255,7 +241,7 @@ def propagate(
                     _draw(mean, H, gain[0], innovation, root_q, root_r[0], w[b, i], v[b, i], sample, process)  # fmt: skip
                     log_ratio = _proposal_log_density(
                         sample, mean, gain[0], innovation, H, q, components[0, 1],
-                        log_det_precision[0], n_log_2pi,
+                        log_det_precision[0], n_log_2pi, process,
                     )  # fmt: skip
                 else:
                     for c in range(count):  # log weight times N(e; 0, S_c)
@@ -280,7 +266,7 @@ def propagate(
                     for c in range(count):
                         densities[c] = log_mixture[c] + _proposal_log_density(
                             sample, mean, gain[c], innovation, H, q, components[c, 1],
-                            log_det_precision[c], n_log_2pi,
+                            log_det_precision[c], n_log_2pi, process,
                         )  # fmt: skip
                     log_ratio = _logsumexp(densities)
                 transition_sum = 0.0

@@ -254,18 +254,23 @@ class NoiseLaw:
             )
         return noise
 
+    @property
+    def student_t_log_norm(self) -> float:
+        """``log`` of the Student-t law's normalizing constant at scale ``sigma``."""
+        nu = self.dof
+        return (
+            special.gammaln((nu + 1) / 2)
+            - special.gammaln(nu / 2)
+            - 0.5 * math.log(nu * math.pi)
+            - math.log(self.sigma)
+        )
+
     def log_density(self, residual: np.ndarray) -> np.ndarray:
         """``log p(residual)`` summed over the last axis (``(..., n_y)`` -> ``(...)``)."""
         z = residual / self.sigma
         if self.law == "student-t":
             nu = self.dof
-            log_norm = (
-                special.gammaln((nu + 1) / 2)
-                - special.gammaln(nu / 2)
-                - 0.5 * math.log(nu * math.pi)
-                - math.log(self.sigma)
-            )
-            each = log_norm - (nu + 1) / 2 * np.log1p(z**2 / nu)
+            each = self.student_t_log_norm - (nu + 1) / 2 * np.log1p(z**2 / nu)
         elif self.law == "outliers":
             p, s = self.outlier_fraction, self.outlier_scale
             inlier = math.log1p(-p) - 0.5 * z**2
