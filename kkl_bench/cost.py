@@ -160,12 +160,14 @@ def counted_flops(estimator, data) -> tuple[float, str]:
     """``(flops per trajectory-step, precision)`` of a fitted estimator on the test set
     ``data``: its own ``flops_per_step()`` where it declares one (the filters, in
     float64), else the matrix products one ``estimate`` on ``data`` runs, counted by the
-    layer sizes (:func:`kkl_bench.flops.counted`; a network, in float32)."""
+    layer sizes (:func:`kkl_bench.flops.counted`; a network, in float32); NaN where
+    that counts nothing (a plugin computing outside torch: its floor is unknown)."""
     declared = getattr(estimator, "flops_per_step", None)
     if declared is not None:
         return declared(), "float64"
     total = flops.counted(lambda: estimator.estimate(data.t, data.y, data.u))
-    return total / data.y[..., 0].size, "float32"
+    # nothing counted: a plugin whose arithmetic runs outside torch and declares none
+    return (total / data.y[..., 0].size if total else math.nan), "float32"
 
 
 def timed_variants(name: str) -> dict[str, str]:

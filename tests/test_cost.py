@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -194,6 +195,13 @@ def test_flops_are_what_an_estimator_declares_or_its_layer_sizes_give():
     data = SimpleNamespace(t=np.arange(5.0), y=np.zeros((3, 5, 1)), u=np.zeros((3, 5, 1)))
     assert cost.counted_flops(Network(), data) == (2 * 2 * 8, "float32")
     assert cost.counted_flops(Declared(), data) == (123.0, "float64")
+
+    class Numpy(Network):  # computes outside torch and declares nothing: not counted
+        def estimate(self, t, y, u):
+            return y @ np.ones((1, 2))
+
+    flops, precision = cost.counted_flops(Numpy(), data)
+    assert math.isnan(flops) and precision == "float32"
     with pytest.raises(ValueError, match=r"float16.*float32, float64"):
         cost.peak_gflops("float16")
 

@@ -40,6 +40,9 @@ FEW_STEPS = {
     "rnn_steps": 20,
 }
 LEARNED = sorted(set(estimators.names()) - {"ekf", "ukf"})
+COMPILED = [f"{name}[engine='compiled']" for name in ("ekf", "ukf", "enkf", "particle_filter")]
+"""The filters' compiled engines, timed beside their reference engines (the rows above)."""
+ROWS = ["ekf", "ukf", *LEARNED, *COMPILED]
 BATCHES = {"ekf": (1, 20), "ukf": (1, 20), "particle_filter": (1, 20)}
 """Trajectories per call; the filters' loops are too slow for 1000 (the others: 1, 20, 1000;
 the particle filter's 1000 would take about 30 minutes)."""
@@ -56,7 +59,7 @@ def fitted(tmp_path_factory):
     cache = tmp_path_factory.mktemp("cache")
     spec = RunSpec(("ekf",), (SYSTEM,), (REGIME,), get_profile("standard"), cache_dir=Path(cache))
     fitted = {}
-    for name in ["ekf", "ukf", *LEARNED]:
+    for name in ROWS:
         context = make_fit_context(spec, name, SYSTEM, 0)
         context = dataclasses.replace(context, budget={**context.budget, **FEW_STEPS})
         estimator = variants.build(name)
@@ -82,8 +85,8 @@ def batch_of(n: int):
     ("name", "batch"),
     [
         (name, batch)
-        for name in ["ekf", "ukf", *LEARNED]
-        for batch in BATCHES.get(name, (1, 20, 1000))
+        for name in ROWS
+        for batch in BATCHES.get(variants.parse(name)[0], (1, 20, 1000))
     ],
 )
 def test_estimate(benchmark, fitted, peaks, name, batch):
