@@ -22,7 +22,7 @@ from kkl_bench.spec import RunSpec, fit_context_for_row
 from kkl_bench.task import get_profile, make_test_set
 from kkl_bench.testing import check_estimator
 
-FILTERS = ("ekf", "ukf", "enkf", "particle_filter[n=500]")
+FILTERS = ("ekf", "ukf", "enkf", "particle_filter[n=100]")
 """The rows with two engines (the particle filter with fewer particles than the board's: the
 engines share every operation but the count, and the test stays fast)."""
 RELATIVE = 1e-9
