@@ -491,8 +491,9 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
                 transition = normals(model.n_x)
         components = np.array(mixture or ((1.0, measurement.variance),), dtype=np.float64)
         law, constants = particle_kernels.noise_law_constants(measurement.noise)
-        particles = np.array(particles, dtype=np.float64, order="C")
-        log_weights = np.array(log_weights, dtype=np.float64, order="C")
+        # moved and reweighted in place (the caller holds no other reference to them)
+        particles = np.ascontiguousarray(particles, dtype=np.float64)
+        log_weights = np.ascontiguousarray(log_weights, dtype=np.float64)
         particle_kernels.propagate(
             model.drift, model.output, model.output_jacobian, model.sense, model.sense_slope,
             model.constrain, model.p, model.q, model.s, model.g, particles, log_weights,

@@ -15,7 +15,9 @@ def cell(estimator, scored, trained=None, seed=0):
     """A results row: scored at commit ``scored``, its model trained at ``trained``
     (per phase; None: no training recorded)."""
     spent = (
-        None if trained is None else {f"phase{i}": {"git_commit": c} for i, c in enumerate(trained)}
+        None
+        if trained is None
+        else {f"phase{i}": {"steps": 100, "git_commit": c} for i, c in enumerate(trained)}
     )
     return {
         "estimator": estimator,

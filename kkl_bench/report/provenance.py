@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pandas as pd
 
+from kkl_bench.convergence import trained
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report.board import Board
 from kkl_bench.report.model import HTML, Section, Table, Text
@@ -39,12 +40,12 @@ def training_commits(fit_report: dict | None) -> set[str]:
 def _trained_by(reports) -> str:
     """``41fe503615c0 (462); not recorded (330)``: the training commits of a row's cells
     (``reports``: their fit reports) with how many cells each, empty if no cell trains."""
+    if not any(trained(report) for report in reports):
+        return ""  # nothing trained (a filter)
     counts: dict[str, int] = {}
     for report in reports:
         for commit in training_commits(report) or {NOT_RECORDED}:
             counts[commit] = counts.get(commit, 0) + 1
-    if set(counts) == {NOT_RECORDED} and not any((r or {}).get("spent") for r in reports):
-        return ""  # nothing trained (a filter)
     recorded = sorted(c for c in counts if c != NOT_RECORDED)
     parts = [f"`{c}` ({counts[c]})" for c in recorded]
     if NOT_RECORDED in counts:
