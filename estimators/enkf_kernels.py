@@ -137,7 +137,12 @@ def etkf(
     members, n = initial.shape
     sites = near.shape[0]
     ensemble = initial.copy()
-    following, work = np.empty(n), np.empty((5, n))
+    members_swept, following = np.empty((n, members)), np.empty((n, members))
+    outputs, work, u_members = (
+        np.empty((n_y, members)),
+        np.empty((5, n, members)),
+        np.empty(members),
+    )
     predicted = np.empty((members, n_y))
     mean, predicted_mean = np.empty(n), np.empty(n_y)
     anomalies = np.empty((members, n))
@@ -147,15 +152,26 @@ def etkf(
     for k in range(steps):
         if k > 0:
             for i in range(members):
-                rk4_step(drift, p, g, ensemble[i], u[k - 1], dt, following, work)
-                if sigma_w != 0.0:
+                for j in range(n):
+                    members_swept[j, i] = ensemble[i, j]
+            u_members[:] = u[k - 1]
+            rk4_step(drift, p, g, members_swept, u_members, dt, following, work)
+            if sigma_w != 0.0:
+                for i in range(members):
                     for j in range(n):
-                        following[j] = following[j] + sigma_w * noise[k - 1, i, j]
-                constrain(following, p)
-                ensemble[i] = following
+                        following[j, i] = following[j, i] + sigma_w * noise[k - 1, i, j]
+            constrain(following, p)
+            for i in range(members):
+                for j in range(n):
+                    ensemble[i, j] = following[j, i]
         if all_finite(y[k]) and all_finite(ensemble.ravel()):
             for i in range(members):
-                sensed_output(output, sense, q, s, ensemble[i], predicted[i])
+                for j in range(n):
+                    members_swept[j, i] = ensemble[i, j]
+            sensed_output(output, sense, q, s, members_swept, outputs)
+            for i in range(members):
+                for j in range(n_y):
+                    predicted[i, j] = outputs[j, i]
             _mean_over_members(ensemble, mean)
             _mean_over_members(predicted, predicted_mean)
             for i in range(members):

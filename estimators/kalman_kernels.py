@@ -1,17 +1,22 @@
 """The EKF and the UKF compiled: the same arithmetic as filterpy's, without Python in the loop.
 
-Each kernel runs a batch of trajectories through one filter with the protocol's
-settings (``docs/protocol.md`` section 6) and the operations of filterpy's
+Each kernel advances a batch of trajectories together through one filter with the
+protocol's settings (``docs/protocol.md`` section 6) and the operations of filterpy's
 ``ExtendedKalmanFilter`` and ``UnscentedKalmanFilter`` (Merwe scaled sigma points,
 Cholesky square root) in the same order, so its estimates equal the reference
 engine's to rounding (``tests/test_filter_engines.py`` checks a relative 1e-9 on every
 quick-profile cell of the paper and hard tracks). The model comes as a
-:class:`~kkl_bench.protocol.compiled.CompiledModel`'s functions.
+:class:`~kkl_bench.protocol.compiled.CompiledModel`'s functions, which sweep over the
+batch: every state, matrix and scratch array keeps the trajectories on its last axis
+(``x: (n_x, batch)``, ``P: (n_x, n_x, batch)``), so each operation is one loop over
+contiguous memory for all trajectories (protocol 6.3 gives what this layout saves).
 
 A trajectory whose innovation covariance is singular, or whose covariance is not
 positive definite where the UKF needs its square root, stops there and keeps NaN for
 the rest of its samples, as the reference engine does; so does one whose estimate
-stops being finite (that estimate is kept).
+stops being finite (that estimate is kept). A stopped trajectory's lane goes on being
+computed with the others and is never written; a trajectory without a measurement at a
+sample keeps its prediction there.
 
 Shapes: ``y: (batch, steps, n_y)`` (NaN where no measurement), ``u: (batch, steps)``,
 ``x0: (n_x,)``, ``P0, Q: (n_x, n_x)``, ``R: (n_y, n_y)``, ``out: (batch, steps, n_x)``
@@ -66,35 +71,112 @@ def _invert(matrix, out):
 
 
 @numba.njit(cache=True)
+def _invert_each(matrices, out, invertible):
+    """``out[:, :, b] = matrices[:, :, b]^-1`` for every trajectory ``b`` of
+    ``matrices: (m, m, batch)``; ``invertible[b]`` False where it is singular."""
+    m, batch = matrices.shape[0], matrices.shape[2]
+    if m == 1:
+        for b in range(batch):
+            invertible[b] = matrices[0, 0, b] != 0.0
+            out[0, 0, b] = 1.0 / matrices[0, 0, b] if invertible[b] else 0.0
+        return
+    matrix, inverse = np.empty((m, m)), np.empty((m, m))
+    for b in range(batch):
+        matrix[:, :] = matrices[:, :, b]
+        invertible[b] = _invert(matrix, inverse)
+        out[:, :, b] = inverse
+
+
+@numba.njit(cache=True)
 def _upper_cholesky(matrix, out):
-    """``out`` upper triangular with ``out^T out = matrix`` (scipy's ``cholesky``, what
-    filterpy's sigma points use); False if ``matrix`` is not positive definite."""
-    n = matrix.shape[0]
-    out[:, :] = 0.0
+    """``out[:, :, b]`` upper triangular with ``out^T out = matrix[:, :, b]`` for every
+    trajectory (scipy's ``cholesky``, what filterpy's sigma points use); where
+    ``matrix[:, :, b]`` is not positive definite, a diagonal entry of ``out[:, :, b]`` is
+    NaN (:func:`_definite`)."""
+    n, batch = matrix.shape[0], matrix.shape[2]
+    out[:, :, :] = 0.0
     for j in range(n):
-        diagonal = matrix[j, j]
-        for k in range(j):
-            diagonal -= out[k, j] * out[k, j]
-        if not diagonal > 0.0:
-            return False
-        out[j, j] = math.sqrt(diagonal)
-        for i in range(j + 1, n):
-            total = matrix[j, i]
+        for b in range(batch):
+            diagonal = matrix[j, j, b]
             for k in range(j):
-                total -= out[k, j] * out[k, i]
-            out[j, i] = total / out[j, j]
-    return True
+                diagonal -= out[k, j, b] * out[k, j, b]
+            out[j, j, b] = math.sqrt(diagonal) if diagonal > 0.0 else math.nan
+        for i in range(j + 1, n):
+            for b in range(batch):
+                total = matrix[j, i, b]
+                for k in range(j):
+                    total -= out[k, j, b] * out[k, i, b]
+                out[j, i, b] = total / out[j, j, b]
+
+
+@numba.njit(cache=True)
+def _definite(root, definite):
+    """``definite[b]``: the Cholesky factor ``root[:, :, b]`` (:func:`_upper_cholesky`)
+    exists, its diagonal free of NaN."""
+    definite[:] = True
+    for j in range(root.shape[0]):
+        for b in range(root.shape[2]):
+            definite[b] = definite[b] and not math.isnan(root[j, j, b])
 
 
 @numba.njit(cache=True)
 def _matmul(a, b, out):
-    """``out = a @ b``."""
+    """``out = a @ b`` for every trajectory (``a: (i, m, batch)``, ``b: (m, j, batch)``).
+    Indexed whole, without views: a view costs reference counting, more than these small
+    products' arithmetic."""
     for i in range(a.shape[0]):
         for j in range(b.shape[1]):
-            total = 0.0
+            for lane in range(out.shape[2]):
+                out[i, j, lane] = 0.0
             for m in range(a.shape[1]):
-                total += a[i, m] * b[m, j]
-            out[i, j] = total
+                for lane in range(out.shape[2]):
+                    out[i, j, lane] += a[i, m, lane] * b[m, j, lane]
+
+
+@numba.njit(cache=True)
+def _matmul_transposed(a, b, out):
+    """``out = a @ b^T`` for every trajectory (``a: (i, m, batch)``, ``b: (j, m, batch)``)."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            for lane in range(out.shape[2]):
+                out[i, j, lane] = 0.0
+            for m in range(a.shape[1]):
+                for lane in range(out.shape[2]):
+                    out[i, j, lane] += a[i, m, lane] * b[j, m, lane]
+
+
+@numba.njit(cache=True)
+def _add(a, b):
+    """``a += b`` (``b`` of ``a``'s shape, or of its shape without the batch axis)."""
+    if b.ndim == a.ndim:
+        for i in range(a.shape[0]):
+            for j in range(a.shape[1]):
+                for lane in range(a.shape[2]):
+                    a[i, j, lane] += b[i, j, lane]
+    else:
+        for i in range(a.shape[0]):
+            for j in range(a.shape[1]):
+                value = b[i, j]
+                for lane in range(a.shape[2]):
+                    a[i, j, lane] += value
+
+
+@numba.njit(cache=True)
+def _broadcast(matrix, out):
+    """``out[:, :, b] = matrix`` for every trajectory."""
+    for i in range(matrix.shape[0]):
+        for j in range(matrix.shape[1]):
+            out[i, j, :] = matrix[i, j]
+
+
+@numba.njit(cache=True)
+def _inflate(P, Q, inflation):
+    """``P = inflation (P - Q) + Q`` for every trajectory."""
+    for i in range(P.shape[0]):
+        for j in range(P.shape[1]):
+            noise = Q[i, j]
+            for lane in range(P.shape[2]):
+                P[i, j, lane] = inflation * (P[i, j, lane] - noise) + noise
 
 
 @numba.njit(cache=True)
@@ -106,28 +188,57 @@ def all_finite(values):
     return True
 
 
+@numba.njit(cache=True)
+def _record(x, alive, k, out):
+    """``out[b, k] = x[:, b]`` for every trajectory still running; one whose estimate is no
+    longer finite stops after this sample."""
+    n, batch = x.shape
+    for b in range(batch):
+        if alive[b]:
+            for i in range(n):
+                out[b, k, i] = x[i, b]
+            finite = True
+            for i in range(n):
+                finite = finite and math.isfinite(x[i, b])
+            alive[b] = finite
+
+
+@numba.njit(cache=True)
+def _measured_now(y, k, alive, measured):
+    """``measured[b]``: trajectory ``b`` runs and has its measurement at sample ``k``;
+    returns whether any does."""
+    any_measured = False
+    for b in range(y.shape[0]):
+        measured[b] = alive[b] and all_finite(y[b, k])
+        any_measured = any_measured or measured[b]
+    return any_measured
+
+
 @numba.njit  # not cached: numba cannot cache a function of functions
 def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, out):
-    """``out (n_y, n_x)`` = the Jacobian of ``s(h(x))``: the sensor's slope at ``h(x)``
-    times ``dh/dx`` (:meth:`kkl_bench.measurement.SensedSystem.h_jacobian`)."""
+    """``out (n_y, n_x, m)`` = the Jacobian of ``s(h(x))`` at the points ``x (n_x, m)``:
+    the sensor's slope at ``h(x)`` times ``dh/dx``
+    (:meth:`kkl_bench.measurement.SensedSystem.h_jacobian`)."""
     output(x, q, h)
     sense_slope(h, s, slope)
     output_jacobian(x, q, out)
     for j in range(out.shape[0]):
         for i in range(out.shape[1]):
-            out[j, i] = slope[j] * out[j, i]
+            for point in range(out.shape[2]):
+                out[j, i, point] = slope[j, point] * out[j, i, point]
 
 
 @numba.njit(cache=True)
 def _huber_noise(R, residual, S, threshold, out):
-    """``out`` = ``R`` (diagonal) with each output's variance divided by its Huber weight
-    ``min(1, threshold / e)``, ``e = |residual_j| / sqrt(S_jj)``
+    """``out[:, :, b]`` = ``R`` (diagonal) with each output's variance divided by its Huber
+    weight ``min(1, threshold / e)``, ``e = |residual_j| / sqrt(S_jj)``, for every trajectory
     (:func:`kkl_bench.estimators.kalman.huber_noise`, in the same operations)."""
-    out[:, :] = 0.0
+    out[:, :, :] = 0.0
     for j in range(R.shape[0]):
-        normalized = abs(residual[j]) / math.sqrt(S[j, j])
-        weight = threshold / normalized if normalized > 0.0 else math.inf
-        out[j, j] = R[j, j] / min(1.0, weight)
+        for b in range(out.shape[2]):
+            normalized = abs(residual[j, b]) / math.sqrt(S[j, j, b])
+            weight = threshold / normalized if normalized > 0.0 else math.inf
+            out[j, j, b] = R[j, j] / min(1.0, weight)
 
 
 @numba.njit  # not cached: numba cannot cache a function of functions
@@ -142,120 +253,135 @@ def ekf(
     (:func:`_huber_noise`) for a finite ``threshold``."""
     batch, steps, n_y = y.shape
     n = x0.shape[0]
-    x, x_next = np.empty(n), np.empty(n)
-    P, F, FP = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
-    work, jacobian_work = np.empty((5, n)), np.empty((5, n, n))
-    H, PHT, S, SI, K = (
-        np.empty((n_y, n)),
-        np.empty((n, n_y)),
-        np.empty((n_y, n_y)),
-        np.empty((n_y, n_y)),
-        np.empty((n, n_y)),
+    x, x_next, u_previous = np.empty((n, batch)), np.empty((n, batch)), np.empty(batch)
+    P, F, FP = np.empty((n, n, batch)), np.empty((n, n, batch)), np.empty((n, n, batch))
+    work, jacobian_work = np.empty((5, n, batch)), np.empty((5, n, n, batch))
+    H, PHT = np.empty((n_y, n, batch)), np.empty((n, n_y, batch))
+    S, SI = np.empty((n_y, n_y, batch)), np.empty((n_y, n_y, batch))
+    K, KR = np.empty((n, n_y, batch)), np.empty((n, n_y, batch))
+    I_KH, I_KHP = np.empty((n, n, batch)), np.empty((n, n, batch))
+    h, slope = np.empty((n_y, batch)), np.empty((n_y, batch))
+    R_used = np.empty((n_y, n_y, batch))
+    alive, measured, invertible = (
+        np.ones(batch, np.bool_),
+        np.empty(batch, np.bool_),
+        np.empty(batch, np.bool_),
     )
-    KR, I_KH, I_KHP = np.empty((n, n_y)), np.empty((n, n)), np.empty((n, n))
-    h, slope = np.empty(n_y), np.empty(n_y)
     robust = math.isfinite(threshold)
-    R_used = R.copy()
-    for b in range(batch):
-        x[:] = x0
-        P[:, :] = P0
-        for k in range(steps):
-            if k > 0:
-                u_previous = u[b, k - 1]
-                rk4_step_jacobian(
-                    drift, drift_jacobian, p, g, x, u_previous, dt, F, work, jacobian_work
-                )
-                rk4_step(drift, p, g, x, u_previous, dt, x_next, work)
-                constrain(x_next, p)
-                x[:] = x_next
-                _matmul(F, P, FP)
-                _matmul(FP, F.T, P)
-                for i in range(n):
-                    for j in range(n):
-                        P[i, j] += Q[i, j]
-                if inflation != 1.0:
-                    for i in range(n):
-                        for j in range(n):
-                            P[i, j] = inflation * (P[i, j] - Q[i, j]) + Q[i, j]
-            if all_finite(y[b, k]):
-                _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, H)
-                _matmul(P, H.T, PHT)
-                _matmul(H, PHT, S)
-                sensed_output(output, sense, q, s, x, h)
-                for j in range(n_y):
-                    h[j] = y[b, k, j] - h[j]
-                if robust:
-                    for i in range(n_y):
-                        for j in range(n_y):
-                            SI[i, j] = S[i, j] + R[i, j]
-                    _huber_noise(R, h, SI, threshold, R_used)
-                for i in range(n_y):
-                    for j in range(n_y):
-                        S[i, j] += R_used[i, j]
-                if not _invert(S, SI):
-                    break
-                _matmul(PHT, SI, K)
-                for i in range(n):
+    for i in range(n):
+        x[i, :] = x0[i]
+    _broadcast(P0, P)
+    _broadcast(R, R_used)
+    for k in range(steps):
+        if k > 0:
+            for b in range(batch):
+                u_previous[b] = u[b, k - 1]
+            rk4_step_jacobian(
+                drift, drift_jacobian, p, g, x, u_previous, dt, F, work, jacobian_work
+            )
+            rk4_step(drift, p, g, x, u_previous, dt, x_next, work)
+            constrain(x_next, p)
+            x[:, :] = x_next
+            _matmul(F, P, FP)
+            _matmul_transposed(FP, F, P)
+            _add(P, Q)
+            if inflation != 1.0:
+                _inflate(P, Q, inflation)
+        if _measured_now(y, k, alive, measured):
+            _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, H)
+            _matmul_transposed(P, H, PHT)
+            _matmul(H, PHT, S)
+            sensed_output(output, sense, q, s, x, h)
+            for j in range(n_y):
+                for b in range(batch):
+                    h[j, b] = y[b, k, j] - h[j, b]
+            if robust:
+                SI[:, :, :] = S
+                _add(SI, R)
+                _huber_noise(R, h, SI, threshold, R_used)
+            _add(S, R_used)
+            _invert_each(S, SI, invertible)
+            _matmul(PHT, SI, K)
+            for b in range(batch):  # a singular S stops its trajectory before this sample
+                alive[b] = alive[b] and (invertible[b] or not measured[b])
+                measured[b] = measured[b] and invertible[b]
+            for i in range(n):
+                for b in range(batch):
                     correction = 0.0
                     for j in range(n_y):
-                        correction += K[i, j] * h[j]
-                    x[i] = x[i] + correction
-                for i in range(n):
-                    for j in range(n):
+                        correction += K[i, j, b] * h[j, b]
+                    if measured[b]:
+                        x[i, b] = x[i, b] + correction
+            for i in range(n):
+                for j in range(n):
+                    for b in range(batch):
                         total = 0.0
                         for m in range(n_y):
-                            total += K[i, m] * H[m, j]
-                        I_KH[i, j] = (1.0 if i == j else 0.0) - total
-                _matmul(I_KH, P, I_KHP)
-                _matmul(I_KHP, I_KH.T, P)
-                _matmul(K, R_used, KR)
-                _matmul(KR, K.T, FP)
-                for i in range(n):
-                    for j in range(n):
-                        P[i, j] += FP[i, j]
-            out[b, k] = x
-            if not all_finite(x):
-                break
+                            total += K[i, m, b] * H[m, j, b]
+                        I_KH[i, j, b] = (1.0 if i == j else 0.0) - total
+            _matmul(I_KH, P, I_KHP)
+            _matmul_transposed(I_KHP, I_KH, FP)
+            _matmul(K, R_used, KR)
+            _matmul_transposed(KR, K, I_KHP)
+            _add(FP, I_KHP)
+            for i in range(n):
+                for j in range(n):
+                    for b in range(batch):
+                        if measured[b]:
+                            P[i, j, b] = FP[i, j, b]
+        _record(x, alive, k, out)
 
 
 @numba.njit(cache=True)
-def _sigma_points(x, P, spread, root, out):
-    """Merwe's ``2 n + 1`` sigma points of ``(x, P)`` into ``out`` (filterpy's order:
-    ``x``, ``x + U[k]``, ``x - U[k]`` with ``U^T U = spread P``); False if ``spread P`` is
-    not positive definite."""
+def _sigma_points(x, P, spread, scaled, root, definite, out):
+    """Merwe's ``2 n + 1`` sigma points of ``(x, P)`` into ``out: (2 n + 1, n, batch)``
+    (filterpy's order: ``x``, ``x + U[k]``, ``x - U[k]`` with ``U^T U = spread P``);
+    ``definite[b]`` False where ``spread P`` is not positive definite."""
     n = x.shape[0]
     for i in range(n):
         for j in range(n):
-            root[i, j] = spread * P[i, j]
-    if not _upper_cholesky(root.copy(), root):
-        return False
+            for b in range(x.shape[1]):
+                scaled[i, j, b] = spread * P[i, j, b]
+    _upper_cholesky(scaled, root)
+    _definite(root, definite)
     out[0] = x
     for k in range(n):
         for i in range(n):
-            out[k + 1, i] = x[i] - -root[k, i]
-            out[n + k + 1, i] = x[i] - root[k, i]
-    return True
+            for b in range(x.shape[1]):
+                out[k + 1, i, b] = x[i, b] - -root[k, i, b]
+                out[n + k + 1, i, b] = x[i, b] - root[k, i, b]
 
 
 @numba.njit(cache=True)
 def _unscented_transform(points, Wm, Wc, noise, mean, covariance, residuals):
-    """filterpy's ``unscented_transform``: ``mean = Wm @ points``, ``covariance =
-    residuals^T diag(Wc) residuals + noise``."""
-    count, n = points.shape
+    """filterpy's ``unscented_transform`` for every trajectory: ``mean = Wm @ points``,
+    ``covariance = residuals^T diag(Wc) residuals + noise`` (``points: (count, n, batch)``,
+    ``noise: (n, n, batch)``)."""
+    count, n, batch = points.shape
     for j in range(n):
-        total = 0.0
-        for i in range(count):
-            total += Wm[i] * points[i, j]
-        mean[j] = total
-    for i in range(count):
-        for j in range(n):
-            residuals[i, j] = points[i, j] - mean[j]
-    for a in range(n):
-        for c in range(n):
+        for b in range(batch):
             total = 0.0
             for i in range(count):
-                total += residuals[i, a] * (Wc[i] * residuals[i, c])
-            covariance[a, c] = total + noise[a, c]
+                total += Wm[i] * points[i, j, b]
+            mean[j, b] = total
+    for i in range(count):
+        for j in range(n):
+            for b in range(batch):
+                residuals[i, j, b] = points[i, j, b] - mean[j, b]
+    for a in range(n):
+        for c in range(n):
+            for b in range(batch):
+                total = 0.0
+                for i in range(count):
+                    total += residuals[i, a, b] * (Wc[i] * residuals[i, c, b])
+                covariance[a, c, b] = total + noise[a, c, b]
+
+
+@numba.njit(cache=True)
+def _stop_where(alive, ok):
+    """Trajectories where ``ok`` is False stop (``alive[b] = False``)."""
+    for b in range(alive.shape[0]):
+        alive[b] = alive[b] and ok[b]
 
 
 @numba.njit  # not cached: numba cannot cache a function of functions
@@ -271,64 +397,82 @@ def ukf(
     batch, steps, n_y = y.shape
     n = x0.shape[0]
     count = 2 * n + 1
-    x, P, root = np.empty(n), np.empty((n, n)), np.empty((n, n))
-    points, propagated = np.empty((count, n)), np.empty((count, n))
-    residuals_x, work = np.empty((count, n)), np.empty((5, n))
-    outputs, residuals_z = np.empty((count, n_y)), np.empty((count, n_y))
-    zp, S, SI = np.empty(n_y), np.empty((n_y, n_y)), np.empty((n_y, n_y))
-    Pxz, K, KS = np.empty((n, n_y)), np.empty((n, n_y)), np.empty((n, n_y))
+    x, P, u_previous = np.empty((n, batch)), np.empty((n, n, batch)), np.empty(batch)
+    scaled, root = np.empty((n, n, batch)), np.empty((n, n, batch))
+    points, propagated = np.empty((count, n, batch)), np.empty((count, n, batch))
+    residuals_x, work = np.empty((count, n, batch)), np.empty((5, n, batch))
+    outputs, residuals_z = np.empty((count, n_y, batch)), np.empty((count, n_y, batch))
+    zp, S, SI = np.empty((n_y, batch)), np.empty((n_y, n_y, batch)), np.empty((n_y, n_y, batch))
+    Pxz, K, KS = np.empty((n, n_y, batch)), np.empty((n, n_y, batch)), np.empty((n, n_y, batch))
+    Q_each, R_each, R_used = (
+        np.empty((n, n, batch)),
+        np.empty((n_y, n_y, batch)),
+        np.empty((n_y, n_y, batch)),
+    )
+    innovation = np.empty((n_y, batch))
+    alive, measured, ok = (
+        np.ones(batch, np.bool_),
+        np.empty(batch, np.bool_),
+        np.empty(batch, np.bool_),
+    )
     robust = math.isfinite(threshold)
-    R_used, innovation = R.copy(), np.empty(n_y)
-    for b in range(batch):
-        x[:] = x0
-        P[:, :] = P0
-        if not _sigma_points(x, P, spread, root, propagated):
-            continue
-        for k in range(steps):
-            if k > 0:
-                u_previous = u[b, k - 1]
-                if not _sigma_points(x, P, spread, root, points):
-                    break
-                for i in range(count):
-                    rk4_step(drift, p, g, points[i], u_previous, dt, propagated[i], work)
-                    constrain(propagated[i], p)
-                _unscented_transform(propagated, Wm, Wc, Q, x, P, residuals_x)
-                if inflation != 1.0:
-                    for i in range(n):
-                        for j in range(n):
-                            P[i, j] = inflation * (P[i, j] - Q[i, j]) + Q[i, j]
-                if not _sigma_points(x, P, spread, root, propagated):
-                    break
-            if all_finite(y[b, k]):
-                for i in range(count):
-                    sensed_output(output, sense, q, s, propagated[i], outputs[i])
-                _unscented_transform(outputs, Wm, Wc, R, zp, S, residuals_z)
-                if robust:
-                    for c in range(n_y):
-                        innovation[c] = y[b, k, c] - zp[c]
-                    _huber_noise(R, innovation, S, threshold, R_used)
-                    _unscented_transform(outputs, Wm, Wc, R_used, zp, S, residuals_z)
-                if not _invert(S, SI):
-                    break
-                Pxz[:, :] = 0.0
-                for i in range(count):
-                    for a in range(n):
-                        dx = propagated[i, a] - x[a]
-                        for c in range(n_y):
-                            Pxz[a, c] += Wc[i] * (dx * (outputs[i, c] - zp[c]))
-                _matmul(Pxz, SI, K)
+    _broadcast(Q, Q_each)
+    _broadcast(R, R_each)
+    for i in range(n):
+        x[i, :] = x0[i]
+    _broadcast(P0, P)
+    _sigma_points(x, P, spread, scaled, root, ok, propagated)
+    _stop_where(alive, ok)
+    for k in range(steps):
+        if k > 0:
+            for b in range(batch):
+                u_previous[b] = u[b, k - 1]
+            _sigma_points(x, P, spread, scaled, root, ok, points)
+            _stop_where(alive, ok)
+            for i in range(count):
+                rk4_step(drift, p, g, points[i], u_previous, dt, propagated[i], work)
+                constrain(propagated[i], p)
+            _unscented_transform(propagated, Wm, Wc, Q_each, x, P, residuals_x)
+            if inflation != 1.0:
+                _inflate(P, Q, inflation)
+            _sigma_points(x, P, spread, scaled, root, ok, propagated)
+            _stop_where(alive, ok)
+        if _measured_now(y, k, alive, measured):
+            for i in range(count):
+                sensed_output(output, sense, q, s, propagated[i], outputs[i])
+            _unscented_transform(outputs, Wm, Wc, R_each, zp, S, residuals_z)
+            if robust:
+                for c in range(n_y):
+                    for b in range(batch):
+                        innovation[c, b] = y[b, k, c] - zp[c, b]
+                _huber_noise(R, innovation, S, threshold, R_used)
+                _unscented_transform(outputs, Wm, Wc, R_used, zp, S, residuals_z)
+            _invert_each(S, SI, ok)
+            for b in range(batch):  # a singular S stops its trajectory before this sample
+                alive[b] = alive[b] and (ok[b] or not measured[b])
+                measured[b] = measured[b] and ok[b]
+            Pxz[:, :, :] = 0.0
+            for i in range(count):
                 for a in range(n):
+                    for c in range(n_y):
+                        for b in range(batch):
+                            dx = propagated[i, a, b] - x[a, b]
+                            Pxz[a, c, b] += Wc[i] * (dx * (outputs[i, c, b] - zp[c, b]))
+            _matmul(Pxz, SI, K)
+            for a in range(n):
+                for b in range(batch):
                     correction = 0.0
                     for c in range(n_y):
-                        correction += K[a, c] * (y[b, k, c] - zp[c])
-                    x[a] = x[a] + correction
-                _matmul(K, S, KS)
-                for a in range(n):
-                    for c in range(n):
+                        correction += K[a, c, b] * (y[b, k, c] - zp[c, b])
+                    if measured[b]:
+                        x[a, b] = x[a, b] + correction
+            _matmul(K, S, KS)
+            for a in range(n):
+                for c in range(n):
+                    for b in range(batch):
                         total = 0.0
                         for m in range(n_y):
-                            total += KS[a, m] * K[c, m]
-                        P[a, c] = P[a, c] - total
-            out[b, k] = x
-            if not all_finite(x):
-                break
+                            total += KS[a, m, b] * K[c, m, b]
+                        if measured[b]:
+                            P[a, c, b] = P[a, c, b] - total
+        _record(x, alive, k, out)

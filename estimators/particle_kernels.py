@@ -31,7 +31,7 @@ from kkl_bench.estimators.kalman_kernels import (
     _upper_cholesky,
 )
 
-from kkl_bench.protocol.compiled import rk4_step, sensed_output
+from kkl_bench.protocol.compiled import matrix_column, rk4_step, sensed_output
 
 GAUSSIAN, STUDENT_T, OUTLIERS = 0, 1, 2
 """The noise laws' codes in :func:`log_likelihood` (:class:`kkl_bench.measurement.NoiseLaw`)."""
@@ -93,9 +93,8 @@ def log_likelihood(residual, law, constants, gaussian_norm):
 @numba.njit(cache=True, error_model="numpy")
 def _log_det(matrix, work):
     """``log det`` of a symmetric positive definite ``matrix`` (its Cholesky factor into
-    ``work``); NaN if it is not positive definite."""
-    if not _upper_cholesky(matrix, work):
-        return math.nan
+    ``work``); NaN if it is not positive definite (a NaN on the factor's diagonal)."""
+    _upper_cholesky(matrix_column(matrix), matrix_column(work))
     total = 0.0
     for j in range(matrix.shape[0]):
         total += 2.0 * math.log(work[j, j])
@@ -197,12 +196,21 @@ def propagate(
     with ``transition``'s draws, and without ``proposing`` every trajectory moves by the
     transition with ``w``'s. The weight gains ``log p(y | x) - log(q(s) / N(s; mean, q I))``
     where the trajectory is measured. What depends on the sensor's Jacobian ``H`` alone
-    is computed again only when ``H`` changes (never, for a linear sensor)."""
+    is computed again only when ``H`` changes (never, for a linear sensor).
+
+    The model's functions sweep over one trajectory's particles at a time (``(n_x, n)``:
+    the transition means, their outputs and Jacobians, the constraint and the moved
+    particles' outputs); the proposal draws and weights go particle by particle."""
     batch, n_particles, n = particles.shape
     n_y, count = y.shape[1], components.shape[0]
-    mean, work, sample, process = np.empty(n), np.empty((5, n)), np.empty(n), np.empty(n)
+    points, means = np.empty((n, n_particles)), np.empty((n, n_particles))
+    moved, work = np.empty((n, n_particles)), np.empty((5, n, n_particles))
+    u_points, log_ratios = np.empty(n_particles), np.empty(n_particles)
+    outputs, slopes = np.empty((n_y, n_particles)), np.empty((n_y, n_particles))
+    jacobians = np.empty((n_y, n, n_particles if proposing else 0))
+    mean, sample, process = np.empty(n), np.empty(n), np.empty(n)
     H, H_used = np.empty((n_y, n)), np.full((n_y, n), np.nan)
-    h, slope, innovation = np.empty(n_y), np.empty(n_y), np.empty(n_y)
+    innovation = np.empty(n_y)
     S, inverse = np.empty((count, n_y, n_y)), np.empty((count, n_y, n_y))
     cholesky_work, gain = np.empty((n_y, n_y)), np.empty((count, n, n_y))
     log_det, log_det_precision, log_mixture = np.empty(count), np.empty(count), np.empty(count)
@@ -216,15 +224,24 @@ def propagate(
     gaussian_norm = n_y * math.log(2 * math.pi * constants[0]) if law == GAUSSIAN else 0.0
     for b in range(batch):
         measured = present[b]
+        drawing = proposing and measured
         for i in range(n_particles):
-            x = particles[b, i]
-            rk4_step(drift, p, g, x, u[b], dt, mean, work)
+            for k in range(n):
+                points[k, i] = particles[b, i, k]
+        u_points[:] = u[b]
+        rk4_step(drift, p, g, points, u_points, dt, means, work)
+        if drawing:
+            _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means, outputs, slopes, jacobians)  # fmt: skip
+            sensed_output(output, sense, q_output, s, means, outputs)
+        for i in range(n_particles):
+            for k in range(n):
+                mean[k] = means[k, i]
             log_ratio = 0.0
-            if proposing and measured:
-                _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, mean, h, slope, H)  # fmt: skip
+            if drawing:
                 changed = False
                 for j in range(n_y):
                     for k in range(n):
+                        H[j, k] = jacobians[j, k, i]
                         changed = changed or H[j, k] != H_used[j, k]
                 if changed:
                     H_used[:, :] = H
@@ -232,9 +249,8 @@ def propagate(
                         H, q, components, S, inverse, gain, log_det, log_det_precision,
                         cholesky_work,
                     )  # fmt: skip
-                sensed_output(output, sense, q_output, s, mean, h)
                 for j in range(n_y):
-                    innovation[j] = y[b, j] - h[j]
+                    innovation[j] = y[b, j] - outputs[j, i]
                 if singular:
                     sample[:] = math.nan
                 elif count == 1:
@@ -277,11 +293,17 @@ def propagate(
                 noise = transition[b, i] if proposing else w[b, i]
                 for k in range(n):
                     sample[k] = mean[k] + root_q * noise[k]
-            constrain(sample, p)
-            x[:] = sample
-            if measured:
-                sensed_output(output, sense, q_output, s, x, h)
+            for k in range(n):
+                moved[k, i] = sample[k]
+            log_ratios[i] = log_ratio
+        constrain(moved, p)
+        for i in range(n_particles):
+            for k in range(n):
+                particles[b, i, k] = moved[k, i]
+        if measured:
+            sensed_output(output, sense, q_output, s, moved, outputs)
+            for i in range(n_particles):
                 for j in range(n_y):
-                    innovation[j] = y[b, j] - h[j]
+                    innovation[j] = y[b, j] - outputs[j, i]
                 likelihood = log_likelihood(innovation, law, constants, gaussian_norm)
-                log_weights[b, i] = log_weights[b, i] + likelihood - log_ratio
+                log_weights[b, i] = log_weights[b, i] + likelihood - log_ratios[i]

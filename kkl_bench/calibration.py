@@ -79,13 +79,14 @@ class CalibratedSystem(ReadThrough):
 
 @numba.njit(cache=True)
 def _affine(h, s):
-    for j in range(h.shape[0]):
-        h[j] = s[0] * h[j] + s[1]
+    for i in range(h.shape[0]):
+        for j in range(h.shape[1]):
+            h[i, j] = s[0] * h[i, j] + s[1]
 
 
 @numba.njit(cache=True)
 def _affine_slope(h, s, out):
-    out[:] = s[0]
+    out[:, :] = s[0]
 
 
 def calibrate(

@@ -134,14 +134,16 @@ class Saturating(Sensor):
 
 @numba.njit(cache=True)
 def _saturate(h, s):
-    for j in range(h.shape[0]):
-        h[j] = s[0] * np.tanh(h[j] / s[0])
+    for i in range(h.shape[0]):
+        for j in range(h.shape[1]):
+            h[i, j] = s[0] * np.tanh(h[i, j] / s[0])
 
 
 @numba.njit(cache=True)
 def _saturation_slope(h, s, out):
-    for j in range(h.shape[0]):
-        out[j] = 1.0 - np.tanh(h[j] / s[0]) ** 2
+    for i in range(h.shape[0]):
+        for j in range(h.shape[1]):
+            out[i, j] = 1.0 - np.tanh(h[i, j] / s[0]) ** 2
 
 
 @sensors.register("quantized")
@@ -178,8 +180,9 @@ class Quantized(Sensor):
 
 @numba.njit(cache=True)
 def _quantize(h, s):
-    for j in range(h.shape[0]):
-        h[j] = s[0] * np.rint(h[j] / s[0])  # numpy's round: half to even
+    for i in range(h.shape[0]):
+        for j in range(h.shape[1]):
+            h[i, j] = s[0] * np.rint(h[i, j] / s[0])  # numpy's round: half to even
 
 
 NOISE_LAWS = ("gaussian", "student-t", "outliers")

@@ -70,22 +70,24 @@ class Chua(MeasureOneState):
 
 @numba.njit(cache=True)
 def _drift(x, p, out):
-    x1, x2, x3 = x[0], x[1], x[2]
     alpha, beta, m0, m1 = p[0], p[1], p[2], p[3]
-    diode = m1 * x1 + 0.5 * (m0 - m1) * (abs(x1 + 1.0) - abs(x1 - 1.0))
-    out[0] = alpha * (x2 - x1 - diode)
-    out[1] = x1 - x2 + x3
-    out[2] = -beta * x2
+    for j in range(x.shape[1]):
+        x1, x2, x3 = x[0, j], x[1, j], x[2, j]
+        diode = m1 * x1 + 0.5 * (m0 - m1) * (abs(x1 + 1.0) - abs(x1 - 1.0))
+        out[0, j] = alpha * (x2 - x1 - diode)
+        out[1, j] = x1 - x2 + x3
+        out[2, j] = -beta * x2
 
 
 @numba.njit(cache=True)
 def _drift_jacobian(x, p, out):
     alpha, beta, m0, m1 = p[0], p[1], p[2], p[3]
-    slope = m0 if abs(x[0]) < 1.0 else m1
-    out[:, :] = 0.0
-    out[0, 0] = -alpha * (1.0 + slope)
-    out[0, 1] = alpha
-    out[1, 0] = 1.0
-    out[1, 1] = -1.0
-    out[1, 2] = 1.0
-    out[2, 1] = -beta
+    out[:, :, :] = 0.0
+    for j in range(x.shape[1]):
+        slope = m0 if abs(x[0, j]) < 1.0 else m1
+        out[0, 0, j] = -alpha * (1.0 + slope)
+        out[0, 1, j] = alpha
+        out[1, 0, j] = 1.0
+        out[1, 1, j] = -1.0
+        out[1, 2, j] = 1.0
+        out[2, 1, j] = -beta

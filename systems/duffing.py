@@ -44,14 +44,16 @@ class ReverseDuffing(MeasureOneState):
 
 @numba.njit(cache=True)
 def _drift(x, p, out):
-    x2 = x[1]
-    out[0] = p[0] * x2 * x2 * x2
-    out[1] = -x[0]
+    for j in range(x.shape[1]):
+        x2 = x[1, j]
+        out[0, j] = p[0] * x2 * x2 * x2
+        out[1, j] = -x[0, j]
 
 
 @numba.njit(cache=True)
 def _drift_jacobian(x, p, out):
-    out[0, 0] = 0.0
-    out[0, 1] = 3.0 * p[0] * x[1] * x[1]
-    out[1, 0] = -1.0
-    out[1, 1] = 0.0
+    for j in range(x.shape[1]):
+        out[0, 0, j] = 0.0
+        out[0, 1, j] = 3.0 * p[0] * x[1, j] * x[1, j]
+        out[1, 0, j] = -1.0
+        out[1, 1, j] = 0.0

@@ -68,17 +68,19 @@ class FitzHughNagumo(MeasureOneState):
 
 @numba.njit(cache=True)
 def _drift(x, p, out):
-    v, w = x[0], x[1]
     a, b, tau, bias_current, c = p[0], p[1], p[2], p[3], p[4]
-    out[0] = c * (v - v * v * v / 3.0 - w + bias_current)
-    out[1] = c * (v + a - b * w) / tau
+    for j in range(x.shape[1]):
+        v, w = x[0, j], x[1, j]
+        out[0, j] = c * (v - v * v * v / 3.0 - w + bias_current)
+        out[1, j] = c * (v + a - b * w) / tau
 
 
 @numba.njit(cache=True)
 def _drift_jacobian(x, p, out):
-    v = x[0]
     b, tau, c = p[1], p[2], p[4]
-    out[0, 0] = c * (1.0 - v * v)
-    out[0, 1] = -c
-    out[1, 0] = c / tau
-    out[1, 1] = -c * b / tau
+    for j in range(x.shape[1]):
+        v = x[0, j]
+        out[0, 0, j] = c * (1.0 - v * v)
+        out[0, 1, j] = -c
+        out[1, 0, j] = c / tau
+        out[1, 1, j] = -c * b / tau

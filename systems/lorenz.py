@@ -49,21 +49,23 @@ class Lorenz(MeasureOneState):
 
 @numba.njit(cache=True)
 def _drift(x, p, out):
-    x1, x2, x3 = x[0], x[1], x[2]
-    out[0] = p[0] * (x2 - x1)
-    out[1] = x1 * (p[1] - x3) - x2
-    out[2] = x1 * x2 - p[2] * x3
+    for j in range(x.shape[1]):
+        x1, x2, x3 = x[0, j], x[1, j], x[2, j]
+        out[0, j] = p[0] * (x2 - x1)
+        out[1, j] = x1 * (p[1] - x3) - x2
+        out[2, j] = x1 * x2 - p[2] * x3
 
 
 @numba.njit(cache=True)
 def _drift_jacobian(x, p, out):
-    x1, x2, x3 = x[0], x[1], x[2]
-    out[0, 0] = -p[0]
-    out[0, 1] = p[0]
-    out[0, 2] = 0.0
-    out[1, 0] = p[1] - x3
-    out[1, 1] = -1.0
-    out[1, 2] = -x1
-    out[2, 0] = x2
-    out[2, 1] = x1
-    out[2, 2] = -p[2]
+    for j in range(x.shape[1]):
+        x1, x2, x3 = x[0, j], x[1, j], x[2, j]
+        out[0, 0, j] = -p[0]
+        out[0, 1, j] = p[0]
+        out[0, 2, j] = 0.0
+        out[1, 0, j] = p[1] - x3
+        out[1, 1, j] = -1.0
+        out[1, 2, j] = -x1
+        out[2, 0, j] = x2
+        out[2, 1, j] = x1
+        out[2, 2, j] = -p[2]

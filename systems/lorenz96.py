@@ -79,20 +79,23 @@ class Lorenz96(System):
 def _drift(x, p, out):
     n = x.shape[0]
     for i in range(n):
-        advection = (x[(i + 1) % n] - x[(i - 2) % n]) * x[(i - 1) % n]
-        out[i] = advection - x[i] + p[0]
+        following, before, previous = (i + 1) % n, (i - 2) % n, (i - 1) % n
+        for j in range(x.shape[1]):
+            advection = (x[following, j] - x[before, j]) * x[previous, j]
+            out[i, j] = advection - x[i, j] + p[0]
 
 
 @numba.njit(cache=True)
 def _drift_jacobian(x, p, out):
     n = x.shape[0]
-    out[:, :] = 0.0
+    out[:, :, :] = 0.0
     for i in range(n):
         following, before, previous = (i + 1) % n, (i - 2) % n, (i - 1) % n
-        out[i, i] = -1.0
-        out[i, following] = x[previous]
-        out[i, before] = -x[previous]
-        out[i, previous] = x[following] - x[before]
+        for j in range(x.shape[1]):
+            out[i, i, j] = -1.0
+            out[i, following, j] = x[previous, j]
+            out[i, before, j] = -x[previous, j]
+            out[i, previous, j] = x[following, j] - x[before, j]
 
 
 def lorenz96(n: int) -> type[Lorenz96]:

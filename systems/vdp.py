@@ -44,15 +44,17 @@ class VanDerPol(MeasureOneState):
 
 @numba.njit(cache=True)
 def _drift(x, p, out):
-    x1, x2 = x[0], x[1]
-    out[0] = x2
-    out[1] = p[0] * (1.0 - x1 * x1) * x2 - x1
+    for j in range(x.shape[1]):
+        x1, x2 = x[0, j], x[1, j]
+        out[0, j] = x2
+        out[1, j] = p[0] * (1.0 - x1 * x1) * x2 - x1
 
 
 @numba.njit(cache=True)
 def _drift_jacobian(x, p, out):
-    x1, x2 = x[0], x[1]
-    out[0, 0] = 0.0
-    out[0, 1] = 1.0
-    out[1, 0] = -2.0 * p[0] * x1 * x2 - 1.0
-    out[1, 1] = p[0] * (1.0 - x1 * x1)
+    for j in range(x.shape[1]):
+        x1, x2 = x[0, j], x[1, j]
+        out[0, 0, j] = 0.0
+        out[0, 1, j] = 1.0
+        out[1, 0, j] = -2.0 * p[0] * x1 * x2 - 1.0
+        out[1, 1, j] = p[0] * (1.0 - x1 * x1)

@@ -1,10 +1,13 @@
 """The protocol's model in a form numba compiles: what the compiled filter engines run.
 
 A built-in system offers :meth:`~kkl_bench.protocol.system.System.compiled`: a
-:class:`CompiledModel` whose functions evaluate one state vector (no batch axis)
-into a preallocated output, with the system's parameters passed as a float64
-array. A filter kernel receives the functions as arguments, so numba compiles one
-specialization per system (and sensor) and calls them without Python in the loop.
+:class:`CompiledModel` whose functions sweep over points: they evaluate every column of
+``x: (n_x, m)`` (a batch of trajectories, of ensemble members, ...) into a preallocated
+output whose last axis is the same ``m`` points, with the system's parameters passed as
+a float64 array. The points are the last axis so that each operation runs along
+contiguous memory, as the vector units want. A filter kernel receives the functions as
+arguments, so numba compiles one specialization per system (and sensor) and calls them
+without Python in the loop.
 :func:`rk4_step` and :func:`rk4_step_jacobian` are the protocol's RK4 step
 (:mod:`kkl_bench.protocol.simulate`) on these functions, with the same operations in
 the same order: ``tests/test_compiled_model.py`` checks every built-in system's
@@ -13,8 +16,8 @@ compiled model and step against the numpy ones.
 A system without a compiled form (a plugin's) returns None, and the filters fall back
 to their reference engine.
 
-Shapes: ``x: (n_x,)``, ``p``: the system's parameters, ``q``: the output's (the measured
-state indices, as float64), ``s``: the sensor's.
+Shapes: ``x: (n_x, m)``, ``p``: the system's parameters, ``q``: the output's (the
+measured state indices, as float64), ``s``: the sensor's.
 """
 
 from __future__ import annotations
@@ -32,14 +35,18 @@ class CompiledModel:
 
     Attributes
     ----------
-    drift: ``drift(x, p, out)``: ``out (n_x,) = f(x)``.
-    drift_jacobian: ``drift_jacobian(x, p, out)``: ``out (n_x, n_x) = df/dx`` (written whole).
-    output: ``output(x, q, out)``: ``out (n_y,) = h(x)``, the system's own output.
-    output_jacobian: ``output_jacobian(x, q, out)``: ``out (n_y, n_x) = dh/dx`` (written whole).
-    sense: ``sense(h, s)``: the sensor applied in place to ``h (n_y,)``.
-    sense_slope: ``sense_slope(h, s, out)``: ``out (n_y,)``, the sensor's slope at ``h``
+    drift: ``drift(x, p, out)``: ``out (n_x, m) = f(x)`` at each of the ``m`` points of
+        ``x (n_x, m)``.
+    drift_jacobian: ``drift_jacobian(x, p, out)``: ``out (n_x, n_x, m) = df/dx`` (written
+        whole).
+    output: ``output(x, q, out)``: ``out (n_y, m) = h(x)``, the system's own output.
+    output_jacobian: ``output_jacobian(x, q, out)``: ``out (n_y, n_x, m) = dh/dx`` (written
+        whole).
+    sense: ``sense(h, s)``: the sensor applied in place to ``h (n_y, m)``.
+    sense_slope: ``sense_slope(h, s, out)``: ``out (n_y, m)``, the sensor's slope at ``h``
         (what a linearizing filter uses, :meth:`kkl_bench.measurement.Sensor.slope`).
-    constrain: ``constrain(x, p)``: the system's constraint applied in place (erratum E1).
+    constrain: ``constrain(x, p)``: the system's constraint applied in place to ``x (n_x,
+        m)`` (erratum E1).
     p, q, s: the parameters of the drift, the output and the sensor (float64 arrays).
     g: ``(n_x,)`` the input direction.
     n_y: number of outputs.
@@ -123,15 +130,17 @@ def measured_states(
 
 @numba.njit(cache=True)
 def select_states(x, q, out):
-    for j in range(out.shape[0]):
-        out[j] = x[int(q[j])]
+    for i in range(out.shape[0]):
+        state = int(q[i])
+        for j in range(x.shape[1]):
+            out[i, j] = x[state, j]
 
 
 @numba.njit(cache=True)
 def select_states_jacobian(x, q, out):
-    out[:, :] = 0.0
-    for j in range(out.shape[0]):
-        out[j, int(q[j])] = 1.0
+    out[:, :, :] = 0.0
+    for i in range(out.shape[0]):
+        out[i, int(q[i]), :] = 1.0
 
 
 @numba.njit(cache=True)
@@ -141,7 +150,7 @@ def no_sensor(h, s):
 
 @numba.njit(cache=True)
 def unit_slope(h, s, out):
-    out[:] = 1.0
+    out[:, :] = 1.0
 
 
 @numba.njit(cache=True)
@@ -149,90 +158,110 @@ def no_constraint(x, p):
     pass
 
 
+@numba.njit(cache=True)
+def matrix_column(x):
+    """The one matrix ``x: (n_y, n)`` as the sweep ``(n_y, n, 1)`` (a view)."""
+    return x.reshape((x.shape[0], x.shape[1], 1))
+
+
 @numba.njit  # not cached: numba cannot cache a function of functions
 def vector_field(drift, p, g, x, u, out):
-    """``out = f(x) + g u`` (as :meth:`System.vector_field`)."""
+    """``out = f(x) + g u`` (as :meth:`System.vector_field`); ``u: (m,)``, one input a point."""
     drift(x, p, out)
     for i in range(out.shape[0]):
-        out[i] = out[i] + u * g[i]
+        direction = g[i]
+        for j in range(out.shape[1]):
+            out[i, j] = out[i, j] + u[j] * direction
+
+
+@numba.njit(cache=True)
+def _stage_point(x, k, scale, out):
+    """``out = x + scale k``, over every point."""
+    for i in range(x.shape[0]):
+        for j in range(x.shape[1]):
+            out[i, j] = x[i, j] + scale * k[i, j]
 
 
 @numba.njit  # not cached: numba cannot cache a function of functions
 def rk4_step(drift, p, g, x, u, dt, out, work):
-    """``out`` = one RK4 step of ``f(x) + g u`` from ``x`` (:func:`simulate.rk4_step`).
+    """``out`` = one RK4 step of ``f(x) + g u`` from every point of ``x``
+    (:func:`simulate.rk4_step`).
 
-    ``work: (5, n_x)`` scratch (the stages ``k1..k4`` and a stage point).
+    ``x, out: (n_x, m)``, ``u: (m,)``, ``work: (5, n_x, m)`` scratch (the stages ``k1..k4``
+    and a stage point).
     """
-    n = x.shape[0]
     k1, k2, k3, k4, stage = work[0], work[1], work[2], work[3], work[4]
     half = 0.5 * dt
     vector_field(drift, p, g, x, u, k1)
-    for i in range(n):
-        stage[i] = x[i] + half * k1[i]
+    _stage_point(x, k1, half, stage)
     vector_field(drift, p, g, stage, u, k2)
-    for i in range(n):
-        stage[i] = x[i] + half * k2[i]
+    _stage_point(x, k2, half, stage)
     vector_field(drift, p, g, stage, u, k3)
-    for i in range(n):
-        stage[i] = x[i] + dt * k3[i]
+    _stage_point(x, k3, dt, stage)
     vector_field(drift, p, g, stage, u, k4)
     sixth = dt / 6.0
-    for i in range(n):
-        out[i] = x[i] + sixth * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+    for i in range(x.shape[0]):
+        for j in range(x.shape[1]):
+            out[i, j] = x[i, j] + sixth * (k1[i, j] + 2.0 * k2[i, j] + 2.0 * k3[i, j] + k4[i, j])
 
 
 @numba.njit(cache=True)
 def _chain(stages, target, previous, scale):
-    """``stages[target] = stages[4] @ (I + scale stages[previous])``: one stage of the chain
-    rule, on slices of one ``(5, n, n)`` array (indexing it whole keeps the loop free of
-    array views)."""
-    n = stages.shape[1]
+    """``stages[target] = stages[4] @ (I + scale stages[previous])`` at every point: one
+    stage of the chain rule, on slices of one ``(5, n, n, m)`` array (indexed whole: a view
+    costs reference counting, more than a small product's arithmetic)."""
+    n, points = stages.shape[1], stages.shape[3]
     for i in range(n):
         for j in range(n):
-            total = 0.0
-            for m in range(n):
-                factor = scale * stages[previous, m, j]
-                if m == j:
-                    factor = 1.0 + factor
-                total += stages[4, i, m] * factor
-            stages[target, i, j] = total
+            for point in range(points):
+                stages[target, i, j, point] = 0.0
+            for k in range(n):
+                if k == j:
+                    for point in range(points):
+                        factor = 1.0 + scale * stages[previous, k, j, point]
+                        stages[target, i, j, point] += stages[4, i, k, point] * factor
+                else:
+                    for point in range(points):
+                        factor = scale * stages[previous, k, j, point]
+                        stages[target, i, j, point] += stages[4, i, k, point] * factor
 
 
 @numba.njit  # not cached: numba cannot cache a function of functions
 def rk4_step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stages):
-    """``out (n_x, n_x)`` = the Jacobian of :func:`rk4_step` at ``x`` by the chain rule
-    (:func:`simulate.rk4_step_jacobian`). ``work: (5, n_x)``, ``stages: (5, n_x, n_x)``
-    scratch (``dk1..dk4`` and the Jacobian at a stage point)."""
-    n = x.shape[0]
+    """``out (n_x, n_x, m)`` = the Jacobian of :func:`rk4_step` at every point of ``x`` by
+    the chain rule (:func:`simulate.rk4_step_jacobian`). ``work: (5, n_x, m)``, ``stages:
+    (5, n_x, n_x, m)`` scratch (``dk1..dk4`` and the Jacobian at a stage point)."""
     k, stage = work[0], work[4]
     half = 0.5 * dt
     vector_field(drift, p, g, x, u, k)
     drift_jacobian(x, p, stages[0])
-    for i in range(n):
-        stage[i] = x[i] + half * k[i]
+    _stage_point(x, k, half, stage)
     vector_field(drift, p, g, stage, u, k)
     drift_jacobian(stage, p, stages[4])
     _chain(stages, 1, 0, half)
-    for i in range(n):
-        stage[i] = x[i] + half * k[i]
+    _stage_point(x, k, half, stage)
     vector_field(drift, p, g, stage, u, k)
     drift_jacobian(stage, p, stages[4])
     _chain(stages, 2, 1, half)
-    for i in range(n):
-        stage[i] = x[i] + dt * k[i]
+    _stage_point(x, k, dt, stage)
     drift_jacobian(stage, p, stages[4])
     _chain(stages, 3, 2, dt)
     sixth = dt / 6.0
+    n, points = x.shape
     for i in range(n):
         for j in range(n):
             identity = 1.0 if i == j else 0.0
-            out[i, j] = identity + sixth * (
-                stages[0, i, j] + 2.0 * stages[1, i, j] + 2.0 * stages[2, i, j] + stages[3, i, j]
-            )
+            for point in range(points):
+                out[i, j, point] = identity + sixth * (
+                    stages[0, i, j, point]
+                    + 2.0 * stages[1, i, j, point]
+                    + 2.0 * stages[2, i, j, point]
+                    + stages[3, i, j, point]
+                )
 
 
 @numba.njit  # not cached: numba cannot cache a function of functions
 def sensed_output(model_output, sense, q, s, x, out):
-    """``out = s(h(x))``: the system's output read through the sensor."""
+    """``out (n_y, m) = s(h(x))``: the system's output read through the sensor."""
     model_output(x, q, out)
     sense(out, s)

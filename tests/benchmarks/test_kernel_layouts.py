@@ -2,10 +2,11 @@
 
 Run with ``python -m pytest tests/benchmarks/test_kernel_layouts.py --benchmark-only``.
 
-- ``per_point``: the compiled engines' design (``kkl_bench.protocol.compiled.rk4_step``
-  over the system's ``drift`` of one state vector, called point after point);
-- ``swept``: the same operations, each swept over an array of points (a drift of many
-  points, as a vectorized kernel would take it);
+- ``swept``: the compiled engines' design (``kkl_bench.protocol.compiled.rk4_step`` over
+  the system's ``drift``, each operation swept over all points at once, ``x: (n_x, m)``);
+- ``per_point``: the same functions called point after point, each point a sweep of one
+  (the layout the engines had before they swept: each call's views cost reference
+  counting);
 - ``scalar``: the step written out in scalars (what the arithmetic allows).
 
 Each records ``ns_per_point`` in its ``extra_info``; divide two rows of one run for a
@@ -26,53 +27,26 @@ DT = 0.05
 
 @numba.njit
 def _per_point(drift, p, g, points, u, dt, out):
-    n = points.shape[1]
-    mean, work = np.empty(n), np.empty((5, n))
-    for j in range(points.shape[0]):
-        rk4_step(drift, p, g, points[j], u, dt, mean, work)
-        out[j] = mean
+    n = points.shape[0]
+    point, mean, work, u_point = np.empty(n), np.empty(n), np.empty((5, n, 1)), np.full(1, u)
+    for j in range(points.shape[1]):
+        point[:] = points[:, j]
+        rk4_step(drift, p, g, point.reshape((n, 1)), u_point, dt, mean.reshape((n, 1)), work)
+        out[:, j] = mean
 
 
 @numba.njit
-def _duffing_drift_swept(x, a, out):
-    for j in range(x.shape[0]):
-        x2 = x[j, 1]
-        out[j, 0] = a * x2 * x2 * x2
-        out[j, 1] = -x[j, 0]
-
-
-@numba.njit
-def _stage(x, k, g, u, scale, out):
-    """``out = x + scale (k + g u)`` over every point (``k`` the drift there)."""
-    for j in range(x.shape[0]):
-        for i in range(x.shape[1]):
-            out[j, i] = x[j, i] + scale * (k[j, i] + u * g[i])
-
-
-@numba.njit
-def _swept(a, g, points, u, dt, out):
-    m, n = points.shape
-    k = np.empty((4, m, n))
-    stage = np.empty((m, n))
-    _duffing_drift_swept(points, a, k[0])
-    _stage(points, k[0], g, u, 0.5 * dt, stage)
-    _duffing_drift_swept(stage, a, k[1])
-    _stage(points, k[1], g, u, 0.5 * dt, stage)
-    _duffing_drift_swept(stage, a, k[2])
-    _stage(points, k[2], g, u, dt, stage)
-    _duffing_drift_swept(stage, a, k[3])
-    sixth = dt / 6.0
-    for j in range(m):
-        for i in range(n):
-            total = k[0, j, i] + 2.0 * k[1, j, i] + 2.0 * k[2, j, i] + k[3, j, i]
-            out[j, i] = points[j, i] + sixth * (total + 6.0 * u * g[i])
+def _swept(drift, p, g, points, u, dt, out):
+    rk4_step(
+        drift, p, g, points, np.full(points.shape[1], u), dt, out, np.empty((5, *points.shape))
+    )
 
 
 @numba.njit
 def _scalar(a, g, points, u, dt, out):
     g0, g1 = g[0] * u, g[1] * u
-    for j in range(points.shape[0]):
-        x0, x1 = points[j, 0], points[j, 1]
+    for j in range(points.shape[1]):
+        x0, x1 = points[0, j], points[1, j]
         k10, k11 = a * x1 * x1 * x1 + g0, -x0 + g1
         s0, s1 = x0 + 0.5 * dt * k10, x1 + 0.5 * dt * k11
         k20, k21 = a * s1 * s1 * s1 + g0, -s0 + g1
@@ -80,20 +54,20 @@ def _scalar(a, g, points, u, dt, out):
         k30, k31 = a * s1 * s1 * s1 + g0, -s0 + g1
         s0, s1 = x0 + dt * k30, x1 + dt * k31
         k40, k41 = a * s1 * s1 * s1 + g0, -s0 + g1
-        out[j, 0] = x0 + dt / 6.0 * (k10 + 2.0 * k20 + 2.0 * k30 + k40)
-        out[j, 1] = x1 + dt / 6.0 * (k11 + 2.0 * k21 + 2.0 * k31 + k41)
+        out[0, j] = x0 + dt / 6.0 * (k10 + 2.0 * k20 + 2.0 * k30 + k40)
+        out[1, j] = x1 + dt / 6.0 * (k11 + 2.0 * k21 + 2.0 * k31 + k41)
 
 
 @pytest.fixture(scope="module")
 def case():
     model = systems.get("duffing")().compiled()
-    points = np.random.default_rng(0).uniform(-1.0, 1.0, (POINTS, model.n_x))
+    points = np.random.default_rng(0).uniform(-1.0, 1.0, (model.n_x, POINTS))
     return model, points
 
 
 LAYOUTS = {
+    "swept": lambda m, x, u, out: _swept(m.drift, m.p, m.g, x, u, DT, out),
     "per_point": lambda m, x, u, out: _per_point(m.drift, m.p, m.g, x, u, DT, out),
-    "swept": lambda m, x, u, out: _swept(m.p[0], m.g, x, u, DT, out),
     "scalar": lambda m, x, u, out: _scalar(m.p[0], m.g, x, u, DT, out),
 }
 
@@ -103,7 +77,7 @@ def test_rk4_step_layout(benchmark, case, layout):
     model, points = case
     out = np.empty_like(points)
     reference = np.empty_like(points)
-    _per_point(model.drift, model.p, model.g, points, 0.3, DT, reference)
+    _swept(model.drift, model.p, model.g, points, 0.3, DT, reference)
     with thread_limit(1):
         LAYOUTS[layout](model, points, 0.3, out)  # compiled before timing
         np.testing.assert_allclose(out, reference, rtol=1e-12, atol=1e-14)
