@@ -119,7 +119,7 @@ def _definite(root, definite):
             definite[b] = definite[b] and not math.isnan(root[j, j, b])
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _matmul(a, b, out):
     """``out = a @ b`` for every trajectory (``a: (i, m, batch)``, ``b: (m, j, batch)``).
     Indexed whole, without views: a view costs reference counting, more than these small
@@ -133,7 +133,7 @@ def _matmul(a, b, out):
                     out[i, j, lane] += a[i, m, lane] * b[m, j, lane]
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _matmul_transposed(a, b, out):
     """``out = a @ b^T`` for every trajectory (``a: (i, m, batch)``, ``b: (j, m, batch)``)."""
     for i in range(a.shape[0]):
@@ -145,23 +145,26 @@ def _matmul_transposed(a, b, out):
                     out[i, j, lane] += a[i, m, lane] * b[j, m, lane]
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _add(a, b):
-    """``a += b`` (``b`` of ``a``'s shape, or of its shape without the batch axis)."""
-    if b.ndim == a.ndim:
-        for i in range(a.shape[0]):
-            for j in range(a.shape[1]):
-                for lane in range(a.shape[2]):
-                    a[i, j, lane] += b[i, j, lane]
-    else:
-        for i in range(a.shape[0]):
-            for j in range(a.shape[1]):
-                value = b[i, j]
-                for lane in range(a.shape[2]):
-                    a[i, j, lane] += value
+    """``a += b`` for arrays of one shape ``(i, j, batch)``."""
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            for lane in range(a.shape[2]):
+                a[i, j, lane] += b[i, j, lane]
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
+def _add_each(a, matrix):
+    """``a[:, :, b] += matrix`` for every trajectory ``b``."""
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            value = matrix[i, j]
+            for lane in range(a.shape[2]):
+                a[i, j, lane] += value
+
+
+@numba.njit(inline="always")
 def _broadcast(matrix, out):
     """``out[:, :, b] = matrix`` for every trajectory."""
     for i in range(matrix.shape[0]):
@@ -169,7 +172,7 @@ def _broadcast(matrix, out):
             out[i, j, :] = matrix[i, j]
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _inflate(P, Q, inflation):
     """``P = inflation (P - Q) + Q`` for every trajectory."""
     for i in range(P.shape[0]):
@@ -188,7 +191,7 @@ def all_finite(values):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _record(x, alive, k, out):
     """``out[b, k] = x[:, b]`` for every trajectory still running; one whose estimate is no
     longer finite stops after this sample."""
@@ -203,7 +206,7 @@ def _record(x, alive, k, out):
             alive[b] = finite
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _measured_now(y, k, alive, measured):
     """``measured[b]``: trajectory ``b`` runs and has its measurement at sample ``k``;
     returns whether any does."""
@@ -214,7 +217,7 @@ def _measured_now(y, k, alive, measured):
     return any_measured
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit(inline="always")
 def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, out):
     """``out (n_y, n_x, m)`` = the Jacobian of ``s(h(x))`` at the points ``x (n_x, m)``:
     the sensor's slope at ``h(x)`` times ``dh/dx``
@@ -228,7 +231,7 @@ def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, sl
                 out[j, i, point] = slope[j, point] * out[j, i, point]
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _huber_noise(R, residual, S, threshold, out):
     """``out[:, :, b]`` = ``R`` (diagonal) with each output's variance divided by its Huber
     weight ``min(1, threshold / e)``, ``e = |residual_j| / sqrt(S_jj)``, for every trajectory
@@ -284,7 +287,7 @@ def ekf(
             x[:, :] = x_next
             _matmul(F, P, FP)
             _matmul_transposed(FP, F, P)
-            _add(P, Q)
+            _add_each(P, Q)
             if inflation != 1.0:
                 _inflate(P, Q, inflation)
         if _measured_now(y, k, alive, measured):
@@ -297,7 +300,7 @@ def ekf(
                     h[j, b] = y[b, k, j] - h[j, b]
             if robust:
                 SI[:, :, :] = S
-                _add(SI, R)
+                _add_each(SI, R)
                 _huber_noise(R, h, SI, threshold, R_used)
             _add(S, R_used)
             _invert_each(S, SI, invertible)

@@ -164,7 +164,7 @@ def matrix_column(x):
     return x.reshape((x.shape[0], x.shape[1], 1))
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit(inline="always")
 def vector_field(drift, p, g, x, u, out):
     """``out = f(x) + g u`` (as :meth:`System.vector_field`); ``u: (m,)``, one input a point."""
     drift(x, p, out)
@@ -174,7 +174,7 @@ def vector_field(drift, p, g, x, u, out):
             out[i, j] = out[i, j] + u[j] * direction
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _stage_point(x, k, scale, out):
     """``out = x + scale k``, over every point."""
     for i in range(x.shape[0]):
@@ -182,7 +182,7 @@ def _stage_point(x, k, scale, out):
             out[i, j] = x[i, j] + scale * k[i, j]
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit(inline="always")
 def rk4_step(drift, p, g, x, u, dt, out, work):
     """``out`` = one RK4 step of ``f(x) + g u`` from every point of ``x``
     (:func:`simulate.rk4_step`).
@@ -205,7 +205,7 @@ def rk4_step(drift, p, g, x, u, dt, out, work):
             out[i, j] = x[i, j] + sixth * (k1[i, j] + 2.0 * k2[i, j] + 2.0 * k3[i, j] + k4[i, j])
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always")
 def _chain(stages, target, previous, scale):
     """``stages[target] = stages[4] @ (I + scale stages[previous])`` at every point: one
     stage of the chain rule, on slices of one ``(5, n, n, m)`` array (indexed whole: a view
@@ -226,7 +226,7 @@ def _chain(stages, target, previous, scale):
                         stages[target, i, j, point] += stages[4, i, k, point] * factor
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit(inline="always")
 def rk4_step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stages):
     """``out (n_x, n_x, m)`` = the Jacobian of :func:`rk4_step` at every point of ``x`` by
     the chain rule (:func:`simulate.rk4_step_jacobian`). ``work: (5, n_x, m)``, ``stages:
@@ -260,7 +260,7 @@ def rk4_step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stages):
                 )
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit(inline="always")
 def sensed_output(model_output, sense, q, s, x, out):
     """``out (n_y, m) = s(h(x))``: the system's output read through the sensor."""
     model_output(x, q, out)

@@ -1,12 +1,9 @@
-"""What the compiled engines' layout costs: one RK4 step of Duffing for 40000 points, three ways.
+"""What the compiled engines' layout costs: one RK4 step of Duffing for 40000 points, two ways.
 
 Run with ``python -m pytest tests/benchmarks/test_kernel_layouts.py --benchmark-only``.
 
 - ``swept``: the compiled engines' design (``kkl_bench.protocol.compiled.rk4_step`` over
   the system's ``drift``, each operation swept over all points at once, ``x: (n_x, m)``);
-- ``per_point``: the same functions called point after point, each point a sweep of one
-  (the layout the engines had before they swept: each call's views cost reference
-  counting);
 - ``scalar``: the step written out in scalars (what the arithmetic allows).
 
 Each records ``ns_per_point`` in its ``extra_info``; divide two rows of one run for a
@@ -23,16 +20,6 @@ from kkl_bench.registry import systems
 
 POINTS = 40000
 DT = 0.05
-
-
-@numba.njit
-def _per_point(drift, p, g, points, u, dt, out):
-    n = points.shape[0]
-    point, mean, work, u_point = np.empty(n), np.empty(n), np.empty((5, n, 1)), np.full(1, u)
-    for j in range(points.shape[1]):
-        point[:] = points[:, j]
-        rk4_step(drift, p, g, point.reshape((n, 1)), u_point, dt, mean.reshape((n, 1)), work)
-        out[:, j] = mean
 
 
 @numba.njit
@@ -67,7 +54,6 @@ def case():
 
 LAYOUTS = {
     "swept": lambda m, x, u, out: _swept(m.drift, m.p, m.g, x, u, DT, out),
-    "per_point": lambda m, x, u, out: _per_point(m.drift, m.p, m.g, x, u, DT, out),
     "scalar": lambda m, x, u, out: _scalar(m.p[0], m.g, x, u, DT, out),
 }
 
