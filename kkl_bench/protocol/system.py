@@ -124,9 +124,10 @@ class System(ABC):
         return {}
 
     def compiled(self) -> CompiledModel | None:
-        """The model as numba functions (:mod:`kkl_bench.protocol.compiled`), what the
-        filters' compiled engine runs; None (the default) if the system offers none, and
-        the filters then run their reference engine."""
+        """The model as numba functions that sweep over points (``x: (n_x, m)``, the points
+        on the last axis; :class:`kkl_bench.protocol.compiled.CompiledModel` gives each
+        one's signature), what the filters' compiled engine runs; None (the default) if the
+        system offers none, and the filters then run their reference engine."""
         return None
 
     def with_sites(self, sites: int) -> System:
