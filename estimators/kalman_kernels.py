@@ -218,6 +218,15 @@ def _measured_now(y, k, alive, measured):
 
 
 @numba.njit(inline="always")
+def _stop_singular(alive, measured, invertible):
+    """A measured trajectory whose innovation covariance is singular stops before this
+    sample (``alive[b] = False``) and takes no update (``measured[b] = False``)."""
+    for b in range(alive.shape[0]):
+        alive[b] = alive[b] and (invertible[b] or not measured[b])
+        measured[b] = measured[b] and invertible[b]
+
+
+@numba.njit(inline="always")
 def _sensed_output_jacobian(output, output_jacobian, sense_slope, q, s, x, h, slope, out):
     """``out (n_y, n_x, m)`` = the Jacobian of ``s(h(x))`` at the points ``x (n_x, m)``:
     the sensor's slope at ``h(x)`` times ``dh/dx``
@@ -305,9 +314,7 @@ def ekf(
             _add(S, R_used)
             _invert_each(S, SI, invertible)
             _matmul(PHT, SI, K)
-            for b in range(batch):  # a singular S stops its trajectory before this sample
-                alive[b] = alive[b] and (invertible[b] or not measured[b])
-                measured[b] = measured[b] and invertible[b]
+            _stop_singular(alive, measured, invertible)
             for i in range(n):
                 for b in range(batch):
                     correction = 0.0
@@ -451,9 +458,7 @@ def ukf(
                 _huber_noise(R, innovation, S, threshold, R_used)
                 _unscented_transform(outputs, Wm, Wc, R_used, zp, S, residuals_z)
             _invert_each(S, SI, ok)
-            for b in range(batch):  # a singular S stops its trajectory before this sample
-                alive[b] = alive[b] and (ok[b] or not measured[b])
-                measured[b] = measured[b] and ok[b]
+            _stop_singular(alive, measured, ok)
             Pxz[:, :, :] = 0.0
             for i in range(count):
                 for a in range(n):
