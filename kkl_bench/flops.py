@@ -6,7 +6,7 @@ flops (an ``(m, k) @ (k, n)`` product), wherever it runs:
 - in torch, by torch's own counter (``torch.utils.flop_counter.FlopCounterMode``,
   which sees each product a layer, a GRU cell or a generated weight performs);
 - in an ``nn.LSTM``, which that counter does not see (one fused kernel), by its layer
-  sizes (:func:`lstm_flops`);
+  sizes (:func:`lstm_flops`; three times that where it is trained, for the backward);
 - in the observers' numpy paths (:class:`~kkl_bench.kkl.frozen.FrozenMLP`, the latent
   observer's drive), which report their own products with :func:`add`.
 
@@ -57,9 +57,13 @@ def lstm_flops(lstm: nn.LSTM, samples: int) -> float:
 
 
 def _count_lstm(module: nn.Module, args: tuple, output) -> None:
+    """Count an ``nn.LSTM``'s products; three times its forward ones where gradients will
+    flow back through it (a product's backward is two products: the gradients of its
+    input and of its weight)."""
     if isinstance(module, nn.LSTM):
         inputs = args[0]
-        add(lstm_flops(module, inputs.numel() // module.input_size))
+        trained = torch.is_grad_enabled() and any(p.requires_grad for p in module.parameters())
+        add((3 if trained else 1) * lstm_flops(module, inputs.numel() // module.input_size))
 
 
 @contextlib.contextmanager

@@ -21,6 +21,7 @@ from kkl_bench.cli.common import (
     positive_integer,
     seed,
 )
+from kkl_bench.findings import PAPER_SYSTEMS
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators, systems
 from kkl_bench.report import markdown
@@ -92,6 +93,51 @@ def add_parser(commands) -> None:
         "online costs (rows never timed show '-'), e.g. after new cells or curves",
     )
     scaling.set_defaults(handler=scaling_study)
+
+    throughput = commands.add_parser(
+        "throughput",
+        help="what each learned row's training achieves: samples/s and GFLOP/s over the peak",
+        description="Run each learned row's fit at the profile's sizes from an empty "
+        "temporary cache (nothing is kept), with every training measured instead of run "
+        "to the end: one optimizer step's matrix products counted, then --steps steps "
+        "timed, on --threads threads, beside this machine's float32 peak. Merges one row "
+        "per training into DIR/training-throughput.csv and prints the table protocol 6.5 "
+        "shows.",
+    )
+    throughput.add_argument(
+        "--estimator",
+        nargs="+",
+        metavar="NAME",
+        help="estimators or variants to measure (default: every installed learned "
+        "estimator; those that do not support a system are skipped there)",
+    )
+    throughput.add_argument(
+        "--system",
+        nargs="+",
+        default=list(PAPER_SYSTEMS),
+        metavar="NAME",
+        help="systems (default: the paper's)",
+    )
+    throughput.add_argument("--profile", default="standard", help="profile (default standard)")
+    throughput.add_argument(
+        "--steps",
+        type=positive_integer("steps"),
+        default=20,
+        help="optimizer steps timed per training (default 20)",
+    )
+    throughput.add_argument(
+        "--threads",
+        type=positive_integer("threads"),
+        default=1,
+        help="threads while measuring (default 1)",
+    )
+    throughput.add_argument(
+        "--render-only",
+        action="store_true",
+        help="measure nothing: print the table from DIR/training-throughput.csv",
+    )
+    add_out_argument(throughput, Path("leaderboard"), "the folder whose CSV to merge into")
+    throughput.set_defaults(handler=measure_throughput)
 
     cost = commands.add_parser(
         "cost",
@@ -197,6 +243,28 @@ def scaling_study(args: argparse.Namespace) -> int:
     written = write_study(cells, stored, profile, args.out, curves)
     print(f"wrote {', '.join(map(str, written))}")
     return exit_status(args, damaged)
+
+
+def measure_throughput(args: argparse.Namespace) -> int:
+    from kkl_bench import throughput
+
+    out = args.out / throughput.THROUGHPUT_FILE
+    if not args.render_only:
+        rows = throughput.measure(
+            names(estimators, args.estimator) if args.estimator else throughput.learned(),
+            names(systems, args.system),
+            get_profile(args.profile),
+            out,
+            args.steps,
+            args.threads,
+        )
+        print(f"wrote {len(rows)} rows to {out}")
+    stored = throughput.read_throughput(out)
+    if stored is None:
+        print(f"{out} does not exist: run kkl-bench throughput without --render-only first")
+        return 1
+    print(throughput.render(stored))
+    return 0
 
 
 def time_costs(args: argparse.Namespace) -> int:

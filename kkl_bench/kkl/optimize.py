@@ -30,7 +30,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from kkl_bench import status
+from kkl_bench import flops, status
 from kkl_bench.convergence import converged
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.results import provenance
@@ -220,6 +220,70 @@ def resumable(
         resume.cache.remove(RESUME_KIND, written)
 
 
+def _adam_step(loss_fn, step, parameters, optimizer, schedule) -> float:
+    """One optimizer step of :func:`minimize` on ``loss_fn(step)``; returns the loss."""
+    optimizer.zero_grad(set_to_none=True)
+    loss = loss_fn(step)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(parameters, 1.0)
+    optimizer.step()
+    schedule.step()
+    return loss.item()
+
+
+@dataclass
+class Probe:
+    """Measures what each :func:`minimize` call inside :func:`probing` achieves instead of
+    training: one step counted (:func:`kkl_bench.flops.counting`: the matrix products of
+    the loss and its gradient), then ``steps`` steps timed, each the same work as a
+    training step. ``records`` gets one entry per call: ``training`` (its description),
+    ``samples_per_step``, ``fit_steps`` (the steps the training would run), ``steps``,
+    ``seconds`` (the timed steps' wall time) and ``flops_per_step``. A validation error,
+    if the call has one, is measured before and after (untimed), so the fit that reads
+    its curve goes on."""
+
+    steps: int
+    records: list[dict[str, Any]] = field(default_factory=list)
+
+    def measure(self, loss_fn, parameters, optimizer, schedule, samples_per_step, steps,
+                description, validation):  # fmt: skip
+        curve = [(0, float(validation()))] if validation is not None else []
+        with flops.counting() as counted:
+            losses = [_adam_step(loss_fn, 0, parameters, optimizer, schedule)]
+        start = time.perf_counter()
+        for step in range(1, self.steps + 1):
+            losses.append(_adam_step(loss_fn, step, parameters, optimizer, schedule))
+        seconds = time.perf_counter() - start
+        self.records.append(
+            {
+                "training": description,
+                "samples_per_step": samples_per_step,
+                "fit_steps": steps,
+                "steps": self.steps,
+                "seconds": seconds,
+                "flops_per_step": counted(),
+            }
+        )
+        if validation is not None:
+            curve.append((self.steps + 1, float(validation())))
+        return Training(losses, curve)
+
+
+_PROBE: ContextVar[Probe | None] = ContextVar("kkl_bench_probe", default=None)
+
+
+@contextmanager
+def probing(steps: int) -> Iterator[Probe]:
+    """Inside the block, every :func:`minimize` call runs ``1 + steps`` optimizer steps and
+    is measured (:class:`Probe`), not trained: for throughput, never for a model to keep."""
+    probe = Probe(steps)
+    token = _PROBE.set(probe)
+    try:
+        yield probe
+    finally:
+        _PROBE.reset(token)
+
+
 def minimize(
     loss_fn: Callable[[int], torch.Tensor],
     parameters: Iterable[torch.nn.Parameter],
@@ -245,6 +309,12 @@ def minimize(
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
         optimizer, max(steps, 1), eta_min=0.01 * lr
     )
+    probe = _PROBE.get()
+    if probe is not None:
+        return probe.measure(
+            loss_fn, parameters, optimizer, schedule, samples_per_step, steps, description,
+            validation,
+        )  # fmt: skip
     resume = _RESUME.get()
     checkpoint = resume.next_call() if resume else None
     start, training = (0, Training([]))
@@ -257,13 +327,7 @@ def minimize(
         range(start, steps), desc=description, leave=False, disable=None, mininterval=1.0
     ) as bar:
         for step in bar:
-            optimizer.zero_grad(set_to_none=True)
-            loss = loss_fn(step)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(parameters, 1.0)
-            optimizer.step()
-            schedule.step()
-            training.losses.append(loss.item())
+            training.losses.append(_adam_step(loss_fn, step, parameters, optimizer, schedule))
             if step % 100 == 0:
                 bar.set_postfix(loss=f"{training.losses[-1]:.3g}")
             status.step(description, step + 1, steps)
