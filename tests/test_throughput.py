@@ -2,6 +2,9 @@
 running them, the table sums a fit's trainings by the steps each runs, the protocol shows
 the committed measurement."""
 
+import re
+from pathlib import Path
+
 import pandas as pd
 import pytest
 import torch
@@ -10,6 +13,8 @@ from kkl_bench import throughput
 from kkl_bench.cli import main
 from kkl_bench.kkl.optimize import minimize, probing
 from kkl_bench.task import get_profile
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_probe_counts_one_step_of_products_and_times_the_others():
@@ -118,3 +123,14 @@ def test_profile_sizes_reach_the_probe():
     (record,) = records
     quick = get_profile("quick").budget_for("gru_observer")
     assert record["fit_steps"] == quick["rnn_steps"]
+
+
+def test_protocol_shows_the_committed_measurement():
+    measured = throughput.read_throughput(ROOT / "leaderboard" / throughput.THROUGHPUT_FILE)
+    protocol = (ROOT / "docs" / "protocol.md").read_text()
+    shown = re.search(r"<!-- training-throughput -->\n(.*?)\n\n", protocol, re.DOTALL)
+    assert shown, "protocol 6.5 has no table after <!-- training-throughput -->"
+    assert shown.group(1) == throughput.render(measured), (
+        "protocol 6.5's throughput table differs from leaderboard/training-throughput.csv: "
+        "paste `kkl-bench throughput --render-only`"
+    )
