@@ -75,6 +75,16 @@ def add_jobs_argument(parser: argparse.ArgumentParser, what: str) -> None:
     )
 
 
+def add_threads_argument(parser: argparse.ArgumentParser, while_: str) -> None:
+    """``--threads``: the threads torch and BLAS use ``while_`` (measuring, timing)."""
+    parser.add_argument(
+        "--threads",
+        type=positive_integer("threads"),
+        default=1,
+        help=f"threads while {while_} (default 1)",
+    )
+
+
 def add_cache_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--cache",

@@ -14,6 +14,7 @@ from kkl_bench.cli.common import (
     add_cache_argument,
     add_drawing_arguments,
     add_out_argument,
+    add_threads_argument,
     exit_status,
     load,
     names,
@@ -125,12 +126,7 @@ def add_parser(commands) -> None:
         default=20,
         help="optimizer steps timed per training (default 20)",
     )
-    throughput.add_argument(
-        "--threads",
-        type=positive_integer("threads"),
-        default=1,
-        help="threads while measuring (default 1)",
-    )
+    add_threads_argument(throughput, "measuring")
     throughput.add_argument(
         "--render-only",
         action="store_true",
@@ -168,12 +164,7 @@ def add_parser(commands) -> None:
     cost.add_argument(
         "--rounds", type=positive_integer("rounds"), default=3, help="timings per call (default 3)"
     )
-    cost.add_argument(
-        "--threads",
-        type=positive_integer("threads"),
-        default=1,
-        help="threads while timing (default 1)",
-    )
+    add_threads_argument(cost, "timing")
     cost.add_argument(
         "--max-seconds",
         type=float,
