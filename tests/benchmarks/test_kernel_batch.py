@@ -1,0 +1,47 @@
+"""What a compiled EKF step costs against the batch: a fixed cost per step and one per trajectory.
+
+Run with ``python -m pytest tests/benchmarks/test_kernel_batch.py --benchmark-only``.
+
+The compiled EKF kernel (``estimators/kalman_kernels.py``) on 1000 samples of Duffing and of
+Lorenz, at batches of 5 to 160 trajectories, one thread. Each records
+``ns_per_trajectory_step`` in its ``extra_info``; a line through the per-step costs
+``batch * ns_per_trajectory_step`` gives the fixed cost of a step (its loops' set-up over
+the batch, whatever its size) and the cost of each trajectory in it (protocol 6.3 quotes
+both beside the row's floor).
+"""
+
+import numpy as np
+import pytest
+
+from kkl_bench.estimators import kalman_kernels
+from kkl_bench.executors import thread_limit
+from kkl_bench.registry import systems
+
+STEPS = 1000
+BATCHES = (5, 10, 20, 40, 80, 160)
+
+
+def _case(system: str, batch: int):
+    model = systems.get(system)().compiled()
+    rng = np.random.default_rng(0)
+    y = 0.1 * rng.standard_normal((batch, STEPS, model.n_y))
+    u = np.repeat(np.sin(0.05 * np.arange(STEPS))[None], batch, axis=0)
+    n = model.n_x
+    out = np.full((batch, STEPS, n), np.nan)
+    return (
+        *model.functions, model.p, model.q, model.s, model.g, y, u, 0.05,
+        np.zeros(n), np.eye(n), 1e-3 * np.eye(n), 0.01 * np.eye(model.n_y), 1.0, np.inf, out,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("batch", BATCHES)
+@pytest.mark.parametrize("system", ["duffing", "lorenz"])
+def test_ekf_kernel_against_batch(benchmark, system, batch):
+    arguments = _case(system, batch)
+    with thread_limit(1):
+        kalman_kernels.ekf(*arguments)  # compiled before timing
+        assert np.isfinite(arguments[-1]).all()
+        benchmark(kalman_kernels.ekf, *arguments)
+    benchmark.extra_info["ns_per_trajectory_step"] = (
+        1e9 * benchmark.stats.stats.min / (batch * STEPS)
+    )
