@@ -12,8 +12,8 @@ both beside the row's floor).
 
 import numpy as np
 import pytest
-
 from kkl_bench.estimators import kalman_kernels
+
 from kkl_bench.executors import thread_limit
 from kkl_bench.registry import systems
 
