@@ -11,9 +11,9 @@ those over this machine's float32 peak measured in the same run
 temporary cache, so nothing it trains is kept or reused.
 
 :func:`measure` merges its rows into a CSV (one row per estimator, system, training and
-code commit); :func:`throughput_table` renders the newest measurement of each, with the
-samples per second of an earlier commit's measurement beside it (a speed-up's before and
-after). Protocol 6.5 shows the table.
+code commit); :func:`throughput_table` sums each fit's trainings and shows the newest
+measurement of each fit, with the share of the peak an earlier commit's measurement
+reached beside it (a speed-up's before and after). Protocol 6.5 shows the table.
 """
 
 from __future__ import annotations
@@ -54,8 +54,9 @@ COLUMNS = [
     "git_commit",
 ]
 """What a measurement stores per training: ``fit_steps`` the optimizer steps the fit
-runs, ``seconds`` the wall time of ``steps`` timed ones, ``flops_per_step`` the matrix products of one (forward and backward),
-``gflops_per_s`` their rate, ``of_peak`` that over ``peak_gflops`` (float32, same run)."""
+runs, ``seconds`` the wall time of ``steps`` timed ones, ``flops_per_step`` the matrix
+products of one (forward and backward), ``gflops_per_s`` their rate, ``of_peak`` that
+over ``peak_gflops`` (float32, same run)."""
 
 
 def learned() -> list[str]:
@@ -155,13 +156,25 @@ def read_throughput(path: Path) -> pd.DataFrame | None:
     return frame[COLUMNS]
 
 
+FIT_COLUMNS = [
+    *FIT_KEY,
+    "trainings",
+    "optimizer_s",
+    "gflops_per_s",
+    "of_peak",
+    "longest",
+    "longest_share",
+    "longest_samples_per_s",
+    "longest_of_peak",
+]
+
+
 def fit_throughput(frame: pd.DataFrame) -> pd.DataFrame:
     """Per (estimator, system, git_commit), the fit's trainings taken together, each for the
     steps the fit runs: ``optimizer_s`` the time their optimizer steps take, ``gflops_per_s``
     and ``of_peak`` their products' rate, and the training that takes longest
     (``longest``, its ``longest_share`` of the time, ``longest_samples_per_s``)."""
     frame = frame.assign(
-        step_s=frame["seconds"] / frame["steps"],
         fit_s=frame["fit_steps"] * frame["seconds"] / frame["steps"],
         fit_flops=frame["fit_steps"] * frame["flops_per_step"],
     )
@@ -183,19 +196,6 @@ def fit_throughput(frame: pd.DataFrame) -> pd.DataFrame:
             }
         )
     return pd.DataFrame(rows, columns=FIT_COLUMNS)
-
-
-FIT_COLUMNS = [
-    *FIT_KEY,
-    "trainings",
-    "optimizer_s",
-    "gflops_per_s",
-    "of_peak",
-    "longest",
-    "longest_share",
-    "longest_samples_per_s",
-    "longest_of_peak",
-]
 
 
 def throughput_table(frame: pd.DataFrame) -> pd.DataFrame:

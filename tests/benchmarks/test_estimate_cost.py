@@ -21,7 +21,7 @@ import pytest
 from kkl_bench import cost, variants
 from kkl_bench.executors import thread_limit
 from kkl_bench.findings import PAPER_SYSTEMS
-from kkl_bench.registry import estimators
+from kkl_bench.registry import estimators, systems
 from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.task import Task, get_profile, make_test_set
 
@@ -109,7 +109,7 @@ def test_estimate(benchmark, system, fitted, peaks, name, batch):
     benchmark.extra_info["us_per_trajectory_step"] = us
     benchmark.extra_info["flops_per_trajectory_step"] = flops
     benchmark.extra_info["over_floor"] = us / (flops / (peaks[precision] * 1e3))
-    assert estimate.shape[:2] == (batch, len(t))
+    assert estimate.shape == (batch, len(t), systems.get(system)().n_x)
 
 
 @pytest.mark.parametrize("rows", [20, 1000])
