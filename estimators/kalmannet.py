@@ -33,12 +33,16 @@ the open-loop model, which on Lorenz-96 with 10 or more states trained into
 a filter stuck at its clip bounds (RMSE 37); from the EKF's gain it trains.
 It runs on one thread: its per-sample operations are too small for a second
 one to pay (a GRU-cell step of 8 trajectories took 17 ms with two threads on
-a loaded 2-core machine, 0.3 ms with one).
+a loaded 2-core machine, 0.3 ms with one). Where the budget says
+``compile_step`` (the standard profile, on the paper's systems), training runs
+the step compiled by ``torch.compile`` (:meth:`KalmanNetFilter.compile_step`,
+protocol section 6.5): the same arithmetic in fewer, fused operations.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+import warnings
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -46,6 +50,7 @@ from kkl_bench.estimators.ekf import ExtendedKalman
 from kkl_bench.estimators.kalman import box_prior
 from torch import nn
 
+from kkl_bench.devices import compile_failure, resolve
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.executors import thread_limit
 from kkl_bench.kkl.config import from_budget
@@ -113,6 +118,7 @@ class KalmanNetFilter(nn.Module):
             ("dx_scale", n_x),
         ):
             self.register_buffer(name, torch.ones(size))
+        self.compiled_step = None
 
     def set_normalization(self, yu: torch.Tensor, x: torch.Tensor) -> None:
         """Scales from training data ``yu: (n, steps, n_y + 1)``, ``x: (n, steps, n_x)``."""
@@ -132,44 +138,88 @@ class KalmanNetFilter(nn.Module):
     def forward(self, yu: torch.Tensor, state=None):
         """Run the filter over ``yu``; ``state`` is ``(posterior, previous posterior,
         previous prior, previous y, previous u, GRU state)`` after the last sample of a
-        previous call, or None to start at ``t = 0``."""
-        system, n_y = self.system, self.system.n_y
+        previous call, or None to start at ``t = 0``. With gradients on and
+        :meth:`compile_step` called, the samples after the first run compiled."""
+        n_y = self.system.n_y
         batch, steps, _ = yu.shape
         low = self.out_mean - CLIP_STDS * self.out_scale
         high = self.out_mean + CLIP_STDS * self.out_scale
+        step = self.step
+        if self.compiled_step is not None and torch.is_grad_enabled():
+            step = self.compiled_step
         estimates = []
         for k in range(steps):
             y, u = yu[:, k, :n_y], yu[:, k, n_y]
+            observed = yu[:, k, n_y + 1 :] if self.observed_channel else None
             if state is None:  # t = 0: the prior is the box centre, every difference zero
                 centre = self.prior_mean.expand(batch, -1)
                 hidden = yu.new_zeros(batch, self.gru.hidden_size)
-                prior, posterior, previous_posterior, previous_y = centre, centre, centre, y
+                posterior = prior = centre
+                updated, hidden = self.correct(
+                    prior, y, observed, centre, centre, centre, y, hidden, low, high
+                )
             else:
                 posterior, previous_posterior, previous_prior, previous_y, previous_u, hidden = (
                     state
                 )
-                prior = rk4_step(system, posterior, previous_u, self.dt)
-            innovation = y - system.h(prior)
-            if self.observed_channel:
-                innovation = innovation * yu[:, k, n_y + 1 :]
-            features = torch.cat(
-                [
-                    (y - previous_y) / self.dy_scale,
-                    innovation / self.dy_scale,
-                    (posterior - previous_posterior) / self.dx_scale,
-                    (posterior - (prior if state is None else previous_prior)) / self.dx_scale,
-                ],
-                dim=-1,
-            )
-            hidden = self.gru(self.input(features), hidden)
-            gain = self.output(hidden).reshape(batch, system.n_x, n_y)
-            if self.base_gain is not None:
-                gain = gain + self.base_gain
-            updated = prior + (gain @ innovation[..., None])[..., 0]
-            updated = torch.clamp(updated, low, high)
+                updated, prior, hidden = step(
+                    posterior, previous_u, y, observed, previous_posterior, previous_prior,
+                    previous_y, hidden, low, high,
+                )  # fmt: skip
             state = (updated, posterior, prior, y, u, hidden)
             estimates.append(updated)
         return torch.stack(estimates, dim=1), state
+
+    def step(
+        self, posterior, previous_u, y, observed, previous_posterior, previous_prior,
+        previous_y, hidden, low, high,
+    ):  # fmt: skip
+        """One sample after the first: the nominal model's prior from ``posterior``
+        ``(batch, n_x)`` and ``previous_u`` ``(batch,)``, then :meth:`correct`. Returns the
+        posterior, the prior and the GRU state."""
+        prior = rk4_step(self.system, posterior, previous_u, self.dt)
+        updated, hidden = self.correct(
+            prior, y, observed, posterior, previous_posterior, previous_prior, previous_y,
+            hidden, low, high,
+        )  # fmt: skip
+        return updated, prior, hidden
+
+    def correct(
+        self, prior, y, observed, posterior, previous_posterior, previous_prior, previous_y,
+        hidden, low, high,
+    ):  # fmt: skip
+        """The update of ``prior`` ``(batch, n_x)`` by the measurement ``y`` ``(batch, n_y)``
+        (applied where ``observed``, ``(batch, 1)`` or None for every sample) through the
+        learned gain, clamped to ``[low, high]``; ``posterior`` is the previous sample's
+        update, the other ``previous_*`` are one sample older (the features F1-F4).
+        Returns the update and the GRU state."""
+        innovation = y - self.system.h(prior)
+        if observed is not None:
+            innovation = innovation * observed
+        features = torch.cat(
+            [
+                (y - previous_y) / self.dy_scale,
+                innovation / self.dy_scale,
+                (posterior - previous_posterior) / self.dx_scale,
+                (posterior - previous_prior) / self.dx_scale,
+            ],
+            dim=-1,
+        )
+        hidden = self.gru(self.input(features), hidden)
+        gain = self.output(hidden).reshape(len(prior), self.system.n_x, self.system.n_y)
+        if self.base_gain is not None:
+            gain = gain + self.base_gain
+        updated = prior + (gain @ innovation[..., None])[..., 0]
+        return torch.clamp(updated, low, high), hidden
+
+    def compile_step(self) -> None:
+        """Train with :meth:`step` compiled by ``torch.compile`` (see :func:`can_compile`):
+        the same arithmetic, its elementwise operations fused, so float32 rounding differs
+        from the eager step's. Estimates (gradients off) stay eager. Compiling forgets the
+        code compiled for earlier networks (``torch.compiler.reset``): a process that fits
+        several systems in turn would otherwise reach torch's recompile limit."""
+        torch.compiler.reset()
+        self.compiled_step = torch.compile(self.step, fullgraph=True, dynamic=False)
 
 
 GAIN_INITS = ("zero", "ekf")
@@ -244,12 +294,16 @@ class KalmanNet(Estimator):
                 observed_channel="sampling" in context.measurement.features,
                 base_gain=None if base_gain is None else torch.as_tensor(base_gain),
             )
+        compiled = compiles_step(context)
+        if compiled:
+            network.compile_step()
         description = model_description(
             KIND,
             VERSION,
             system,
             context.seed,
             **({"gain_init": self.gain_init} if self.gain_init != "zero" else {}),
+            **({"compiled_step": True} if compiled else {}),
         )
         with thread_limit(1):
             self.report_ = fit_sequence_model(context, network, config, description)
@@ -263,3 +317,29 @@ class KalmanNet(Estimator):
 
     def fit_report(self):
         return {**self.report_, "gain_init": self.gain_init}
+
+
+@dataclass(frozen=True)
+class StepCompilation:
+    """Budget key ``compile_step``: train with the filter's step compiled
+    (:meth:`KalmanNetFilter.compile_step`). Compiling takes about half a minute, which a
+    standard fit repays many times over and a quick one does not."""
+
+    compile_step: bool = False
+
+
+def compiles_step(context: FitContext) -> bool:
+    """Whether a fit in ``context`` trains with the step compiled: its budget asks for it,
+    it trains on the CPU, and torch can compile there (:func:`~kkl_bench.devices.compile_failure`;
+    if not, a warning says why and training runs eagerly)."""
+    if not from_budget(StepCompilation, context).compile_step or resolve(context.device) != "cpu":
+        return False
+    failure = compile_failure()
+    if failure is not None:
+        warnings.warn(
+            f"kalmannet: the budget asks for a compiled step, but torch.compile fails on this "
+            f"machine ({failure}); training eagerly (slower; the model differs by float32 "
+            "rounding from a compiled training's)",
+            stacklevel=2,
+        )
+    return failure is None

@@ -11,6 +11,7 @@ floating-point rounding only. On the CPU, :func:`training_on` changes nothing.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -77,3 +78,27 @@ def draw_normal(size: torch.Size, generator: torch.Generator, like: torch.Tensor
 def to_numpy(tensor: torch.Tensor) -> np.ndarray:
     """A float64 numpy copy of ``tensor``, from any device."""
     return tensor.detach().double().cpu().numpy()
+
+
+@functools.cache
+def compile_failure() -> str | None:
+    """Why ``torch.compile`` cannot compile for this machine's CPU, or None when it can.
+
+    Compiling for the CPU needs a C++ compiler (torch's inductor backend writes C++);
+    a tiny function is compiled and run once per process to find out. The reason is
+    the error's type and first line. Torch before 2.6 cannot run a compiled function
+    eagerly on demand (``torch.compiler.set_stance``), which counting flops needs
+    (:func:`kkl_bench.flops.counting`), so it does not compile either.
+    """
+    if not hasattr(torch.compiler, "set_stance"):
+        return f"torch {torch.__version__} has no torch.compiler.set_stance (added in 2.6)"
+    try:
+        torch.compile(_double_plus_one, fullgraph=True, dynamic=False)(torch.ones(2))
+    except Exception as error:  # any failure means: train eagerly
+        first_line = next(iter(str(error).splitlines()), "")
+        return f"{type(error).__name__}: {first_line}"
+    return None
+
+
+def _double_plus_one(x: torch.Tensor) -> torch.Tensor:
+    return 2.0 * x + 1.0

@@ -69,13 +69,20 @@ def _count_lstm(module: nn.Module, args: tuple, output) -> None:
 @contextlib.contextmanager
 def counting() -> Iterator[Callable[[], float]]:
     """Count the matrix products run inside the block; yields a function that returns
-    the count so far (and the total, after the block)."""
+    the count so far (and the total, after the block). Functions compiled with
+    ``torch.compile`` run eagerly inside it (the counter cannot see into compiled code;
+    they compute the same products)."""
     tally = [0.0]
     token = _tally.set(tally)
     hook = nn.modules.module.register_module_forward_hook(_count_lstm)
     counter = FlopCounterMode(display=False)
+    eagerly = (  # before torch 2.6 nothing here is compiled (devices.compile_failure)
+        torch.compiler.set_stance("force_eager")
+        if hasattr(torch.compiler, "set_stance")
+        else contextlib.nullcontext()
+    )
     try:
-        with counter:
+        with eagerly, counter:
             yield lambda: tally[0] + counter.get_total_flops()
     finally:
         hook.remove()

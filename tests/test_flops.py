@@ -15,6 +15,18 @@ def test_torch_layers_are_counted_by_their_sizes():
     assert flops.counted(lambda: network(torch.zeros(5, 3))) == 2 * 5 * (3 * 8 + 8 * 2)
 
 
+def test_a_compiled_function_is_counted_by_the_products_it_computes():
+    """The counter cannot see into compiled code: inside a count it runs eagerly."""
+    from kkl_bench.devices import compile_failure
+
+    if compile_failure() is not None:
+        pytest.skip(f"torch.compile fails here: {compile_failure()}")
+    network = nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 2))
+    compiled = torch.compile(network, fullgraph=True, dynamic=False)
+    compiled(torch.zeros(5, 3))  # compiled before the count
+    assert flops.counted(lambda: compiled(torch.zeros(5, 3))) == 2 * 5 * (3 * 8 + 8 * 2)
+
+
 def test_an_lstm_torch_does_not_see_is_counted_by_its_sizes():
     lstm = nn.LSTM(3, 16, num_layers=2, batch_first=True)
     per_sample = 2 * 4 * 16 * (3 + 16) + 2 * 4 * 16 * (16 + 16)  # the gates of both layers

@@ -74,3 +74,59 @@ def test_the_warm_started_correction_trains_at_a_tenth_of_the_rate(
     context = context_for(HarmonicOscillator(), BUDGET, tmp_path)
     KalmanNet(gain_init=gain_init).fit(context)
     assert seen["lr"] == pytest.approx(scale * BUDGET["rnn_lr"])
+
+
+def test_the_compiled_step_computes_the_eager_steps_estimates_and_gradients():
+    """``compile_step`` fuses the step's elementwise operations: over a window of 40
+    samples of Duffing the estimates and every parameter's gradient agree with the eager
+    step's to float32 rounding (protocol section 6.5)."""
+    import torch
+    from kkl_bench.estimators.kalmannet import KalmanNetFilter
+
+    from kkl_bench.devices import compile_failure
+    from kkl_bench.registry import systems
+
+    if compile_failure() is not None:
+        pytest.skip(f"torch.compile fails here: {compile_failure()}")
+    system = systems.get("duffing")()
+    yu = torch.randn(8, 40, 2, generator=torch.Generator().manual_seed(0))
+    runs = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        network = KalmanNetFilter(system, 0.05, torch.zeros(2), 16, observed_channel=False)
+        if compiled:
+            network.compile_step()
+        x_hat, _ = network(yu)
+        x_hat.pow(2).mean().backward()
+        runs.append([x_hat.detach(), *(p.grad for p in network.parameters())])
+    for eager, compiled in zip(*runs, strict=True):
+        torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("asked", "failure", "compiled"),
+    [(False, None, False), (True, None, True), (True, "NoCompiler: no g++", False)],
+)
+def test_a_fit_compiles_its_step_when_its_budget_asks_and_torch_can(
+    tmp_path, monkeypatch, asked, failure, compiled
+):
+    """The model is cached under whether its step was compiled; where torch cannot
+    compile, a warning names why and training runs eagerly."""
+    from kkl_bench.estimators import kalmannet
+
+    seen = {}
+
+    def capture(context, network, config, description):
+        seen["description"], seen["network"] = description, network
+        return {}
+
+    monkeypatch.setattr(kalmannet, "fit_sequence_model", capture)
+    monkeypatch.setattr(kalmannet, "compile_failure", lambda: failure)
+    context = context_for(HarmonicOscillator(), {**BUDGET, "compile_step": asked}, tmp_path)
+    if failure:
+        with pytest.warns(UserWarning, match="torch.compile fails on this machine .NoCompiler"):
+            KalmanNet().fit(context)
+    else:
+        KalmanNet().fit(context)
+    assert ("compiled_step" in seen["description"]) == compiled
+    assert (seen["network"].compiled_step is not None) == compiled

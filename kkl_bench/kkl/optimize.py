@@ -235,8 +235,9 @@ def _adam_step(loss_fn, step, parameters, optimizer, schedule) -> float:
 class Probe:
     """Measures what each :func:`minimize` call inside :func:`probing` achieves instead of
     training: one step counted (:func:`kkl_bench.flops.counting`: the matrix products of
-    the loss and its gradient), then ``steps`` steps timed, each the same work as a
-    training step. ``records`` gets one entry per call: ``training`` (its description),
+    the loss and its gradient), then one untimed (a compiled loss compiles on its first
+    step), then ``steps`` steps timed, each the same work as a training step.
+    ``records`` gets one entry per call: ``training`` (its description),
     ``samples_per_step``, ``fit_steps`` (the steps the training would run), ``steps``,
     ``seconds`` (the timed steps' wall time) and ``flops_per_step``. A validation error,
     if the call has one, is measured before and after (untimed), so the fit that reads
@@ -250,8 +251,10 @@ class Probe:
         curve = [(0, float(validation()))] if validation is not None else []
         with flops.counting() as counted:
             losses = [_adam_step(loss_fn, 0, parameters, optimizer, schedule)]
+        # untimed: a compiled loss compiles on its first step
+        losses.append(_adam_step(loss_fn, 1, parameters, optimizer, schedule))
         start = time.perf_counter()
-        for step in range(1, self.steps + 1):
+        for step in range(2, self.steps + 2):
             losses.append(_adam_step(loss_fn, step, parameters, optimizer, schedule))
         seconds = time.perf_counter() - start
         self.records.append(
@@ -265,7 +268,7 @@ class Probe:
             }
         )
         if validation is not None:
-            curve.append((self.steps + 1, float(validation())))
+            curve.append((len(losses), float(validation())))
         return Training(losses, curve)
 
 
@@ -274,7 +277,7 @@ _PROBE: ContextVar[Probe | None] = ContextVar("kkl_bench_probe", default=None)
 
 @contextmanager
 def probing(steps: int) -> Iterator[Probe]:
-    """Inside the block, every :func:`minimize` call runs ``1 + steps`` optimizer steps and
+    """Inside the block, every :func:`minimize` call runs ``2 + steps`` optimizer steps and
     is measured (:class:`Probe`), not trained: for throughput, never for a model to keep."""
     probe = Probe(steps)
     token = _PROBE.set(probe)

@@ -108,8 +108,11 @@ class System(ABC):
 
     def vector_field(self, x, u):
         """``f(x) + g u``. ``x: (..., n_x)``, ``u: (...)`` -> ``(..., n_x)``."""
-        g = self.g if isinstance(x, np.ndarray) else x.new_tensor(self.g)
-        return self.f(x) + u[..., None] * g
+        if isinstance(x, np.ndarray):
+            return self.f(x) + u[..., None] * self.g
+        import torch  # only reached when the caller passes tensors
+
+        return self.f(x) + u[..., None] * torch.as_tensor(self.g, dtype=x.dtype, device=x.device)
 
     def constrain(self, x: np.ndarray) -> np.ndarray:
         """Map a state perturbed by process noise back into the system's domain.
