@@ -54,9 +54,10 @@ COLUMNS = [
     "git_commit",
 ]
 """What a measurement stores per training: ``fit_steps`` the optimizer steps the fit
-runs, ``seconds`` the wall time of ``steps`` timed ones, ``flops_per_step`` the matrix
-products of one (forward and backward), ``gflops_per_s`` their rate, ``of_peak`` that
-over ``peak_gflops`` (float32, same run)."""
+runs, ``seconds`` ``steps`` times the median of as many timed ones (a compiled
+training's compiles left out, :class:`~kkl_bench.kkl.optimize.Probe`),
+``flops_per_step`` the matrix products of one (forward and backward), ``gflops_per_s``
+their rate, ``of_peak`` that over ``peak_gflops`` (float32, same run)."""
 
 
 def learned() -> list[str]:

@@ -18,6 +18,7 @@ the result is the same as that of an uninterrupted run for the same seed.
 from __future__ import annotations
 
 import math
+import statistics
 import time
 import warnings
 from collections.abc import Callable, Iterable, Iterator
@@ -235,11 +236,12 @@ def _adam_step(loss_fn, step, parameters, optimizer, schedule) -> float:
 class Probe:
     """Measures what each :func:`minimize` call inside :func:`probing` achieves instead of
     training: one step counted (:func:`kkl_bench.flops.counting`: the matrix products of
-    the loss and its gradient), then one untimed (a compiled loss compiles on its first
-    step), then ``steps`` steps timed, each the same work as a training step.
-    ``records`` gets one entry per call: ``training`` (its description),
-    ``samples_per_step``, ``fit_steps`` (the steps the training would run), ``steps``,
-    ``seconds`` (the timed steps' wall time) and ``flops_per_step``. A validation error,
+    the loss and its gradient), then one untimed, then ``steps`` steps timed, each the
+    same work as a training step. ``records`` gets one entry per call: ``training`` (its
+    description), ``samples_per_step``, ``fit_steps`` (the steps the training would run),
+    ``steps``, ``seconds`` (``steps`` times the median of the timed steps: a compiled
+    loss compiles a variant on the first step that needs it, which a fit pays once and
+    the median leaves out) and ``flops_per_step``. A validation error,
     if the call has one, is measured before and after (untimed), so the fit that reads
     its curve goes on."""
 
@@ -253,17 +255,18 @@ class Probe:
             losses = [_adam_step(loss_fn, 0, parameters, optimizer, schedule)]
         # untimed: a compiled loss compiles on its first step
         losses.append(_adam_step(loss_fn, 1, parameters, optimizer, schedule))
-        start = time.perf_counter()
+        durations = []
         for step in range(2, self.steps + 2):
+            start = time.perf_counter()
             losses.append(_adam_step(loss_fn, step, parameters, optimizer, schedule))
-        seconds = time.perf_counter() - start
+            durations.append(time.perf_counter() - start)
         self.records.append(
             {
                 "training": description,
                 "samples_per_step": samples_per_step,
                 "fit_steps": steps,
                 "steps": self.steps,
-                "seconds": seconds,
+                "seconds": self.steps * statistics.median(durations),
                 "flops_per_step": counted(),
             }
         )
