@@ -18,7 +18,7 @@ import pytest
 from kkl_bench import variants
 from kkl_bench.protocol.metrics import diverged
 from kkl_bench.protocol.system import ReadThrough
-from kkl_bench.spec import RunSpec, fit_context_for_row
+from kkl_bench.spec import RunSpec, fit_context_for_row, fit_groups
 from kkl_bench.task import get_profile, make_test_set
 from kkl_bench.testing import check_estimator
 
@@ -26,6 +26,7 @@ FILTERS = ("ekf", "ukf", "enkf", "particle_filter[n=100]")
 """The rows with two engines (the particle filter with fewer particles than the board's: the
 engines share every operation but the count, and the test stays fast)."""
 RELATIVE = 1e-9
+ENGINES = ("reference", "compiled")
 
 
 def spec_for(tracks, profile="quick", tmp_path=None, systems=("duffing", "vdp", "rossler", "lorenz"), regimes=None):  # fmt: skip
@@ -49,13 +50,17 @@ def with_engine(name, engine):
     return variants.canonical(f"{base}[{inner}engine={engine!r}]")
 
 
-def estimates(spec, name, task, engine, n_test, nudge=False):
-    """``(batch, steps, n_x)`` estimates of the ``engine`` of ``name`` on ``task``'s test
-    set; ``nudge`` moves every measurement up by one unit in the last place."""
+def fitted(spec, name, tasks, engine):
+    """The ``engine`` of ``name`` fitted (tuned) once for ``tasks``, as the harness fits it."""
     row = with_engine(name, engine)
-    context = fit_context_for_row(spec, row, task.system, [task], seed=0)
-    estimator = variants.build(row).fit(context)
+    estimator = variants.build(row).fit(fit_context_for_row(spec, row, tasks[0].system, tasks, 0))
     assert estimator.engine_used == engine
+    return estimator
+
+
+def estimates(estimator, task, n_test, nudge=False):
+    """``(batch, steps, n_x)`` estimates of ``estimator`` on ``task``'s test set; ``nudge``
+    moves every measurement up by one unit in the last place."""
     data = make_test_set(task, n_test).data
     y = np.nextafter(data.y, np.inf) if nudge else data.y
     return estimator.estimate(data.t, y, data.u)
@@ -73,21 +78,30 @@ def compare_engines(spec, name, tasks, n_test):
     """The number of trajectories compared and of those exempted as rounding-sensitive;
     fails on any other whose engines differ by more than a relative 1e-9."""
     compared = sensitive = 0
-    for task in tasks:
-        reference = estimates(spec, name, task, "reference", n_test)
-        compiled = estimates(spec, name, task, "compiled", n_test)
-        differs = relative_difference(reference, compiled) > RELATIVE
-        # both diverged (non-finite somewhere): the same score, inf, whatever the overflow
-        # on the way (an EKF blowing up to 1e285 differs in its last digits)
-        differs &= ~(diverged(reference) & diverged(compiled))
-        if differs.any():
-            nudged = estimates(spec, name, task, "reference", n_test, nudge=True)
-            exempt = relative_difference(reference, nudged) > RELATIVE
-            unexplained = np.flatnonzero(differs & ~exempt)
-            assert not unexplained.size, f"{name} on {task}: trajectories {unexplained} differ"
-            sensitive += int(exempt.sum())
-        compared += reference.shape[0]
+    for system in dict.fromkeys(task.system for task in tasks):
+        for _, group in fit_groups(task for task in tasks if task.system == system):
+            engines = {engine: fitted(spec, name, group, engine) for engine in ENGINES}
+            for task in group:
+                compared_here, sensitive_here = compare_on(engines, name, task, n_test)
+                compared, sensitive = compared + compared_here, sensitive + sensitive_here
     return compared, sensitive
+
+
+def compare_on(engines, name, task, n_test):
+    """:func:`compare_engines` on one ``task``, the ``engines`` fitted for it."""
+    reference = estimates(engines["reference"], task, n_test)
+    compiled = estimates(engines["compiled"], task, n_test)
+    differs = relative_difference(reference, compiled) > RELATIVE
+    # both diverged (non-finite somewhere): the same score, inf, whatever the overflow
+    # on the way (an EKF blowing up to 1e285 differs in its last digits)
+    differs &= ~(diverged(reference) & diverged(compiled))
+    if not differs.any():
+        return reference.shape[0], 0
+    nudged = estimates(engines["reference"], task, n_test, nudge=True)
+    exempt = relative_difference(reference, nudged) > RELATIVE
+    unexplained = np.flatnonzero(differs & ~exempt)
+    assert not unexplained.size, f"{name} on {task}: trajectories {unexplained} differ"
+    return reference.shape[0], int(exempt.sum())
 
 
 @pytest.mark.parametrize("name", FILTERS)
