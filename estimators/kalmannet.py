@@ -213,7 +213,7 @@ class KalmanNetFilter(nn.Module):
         return torch.clamp(updated, low, high), hidden
 
     def compile_step(self) -> None:
-        """Train with :meth:`step` compiled by ``torch.compile`` (see :func:`can_compile`):
+        """Train with :meth:`step` compiled by ``torch.compile`` (see :func:`compiles_step`):
         the same arithmetic, its elementwise operations fused, so float32 rounding differs
         from the eager step's. Estimates (gradients off) stay eager. Compiling forgets the
         code compiled for earlier networks (``torch.compiler.reset``): a process that fits

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 
 import numpy as np
 import torch
@@ -80,6 +80,10 @@ def to_numpy(tensor: torch.Tensor) -> np.ndarray:
     return tensor.detach().double().cpu().numpy()
 
 
+_FORCES_EAGER = hasattr(torch.compiler, "set_stance")
+"""Whether this torch can run compiled functions eagerly on demand (2.6 and later)."""
+
+
 @functools.cache
 def compile_failure() -> str | None:
     """Why ``torch.compile`` cannot compile for this machine's CPU, or None when it can.
@@ -90,7 +94,7 @@ def compile_failure() -> str | None:
     eagerly on demand (``torch.compiler.set_stance``), which counting flops needs
     (:func:`kkl_bench.flops.counting`), so it does not compile either.
     """
-    if not hasattr(torch.compiler, "set_stance"):
+    if not _FORCES_EAGER:
         return f"torch {torch.__version__} has no torch.compiler.set_stance (added in 2.6)"
     try:
         torch.compile(_double_plus_one, fullgraph=True, dynamic=False)(torch.ones(2))
@@ -102,3 +106,9 @@ def compile_failure() -> str | None:
 
 def _double_plus_one(x: torch.Tensor) -> torch.Tensor:
     return 2.0 * x + 1.0
+
+
+def running_compiled_code_eagerly() -> AbstractContextManager:
+    """A context in which functions compiled with ``torch.compile`` run eagerly (a no-op
+    before torch 2.6, where nothing here is compiled: :func:`compile_failure`)."""
+    return torch.compiler.set_stance("force_eager") if _FORCES_EAGER else nullcontext()

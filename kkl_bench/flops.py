@@ -26,6 +26,8 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
+from kkl_bench.devices import running_compiled_code_eagerly
+
 _tally: ContextVar[list[float] | None] = ContextVar("kkl_bench_flop_tally", default=None)
 
 
@@ -76,13 +78,8 @@ def counting() -> Iterator[Callable[[], float]]:
     token = _tally.set(tally)
     hook = nn.modules.module.register_module_forward_hook(_count_lstm)
     counter = FlopCounterMode(display=False)
-    eagerly = (  # before torch 2.6 nothing here is compiled (devices.compile_failure)
-        torch.compiler.set_stance("force_eager")
-        if hasattr(torch.compiler, "set_stance")
-        else contextlib.nullcontext()
-    )
     try:
-        with eagerly, counter:
+        with running_compiled_code_eagerly(), counter:
             yield lambda: tally[0] + counter.get_total_flops()
     finally:
         hook.remove()

@@ -77,14 +77,12 @@ def relative_difference(first, second):
 def compare_engines(spec, name, tasks, n_test):
     """The number of trajectories compared and of those exempted as rounding-sensitive;
     fails on any other whose engines differ by more than a relative 1e-9."""
-    compared = sensitive = 0
+    counts = []
     for system in dict.fromkeys(task.system for task in tasks):
         for _, group in fit_groups(task for task in tasks if task.system == system):
             engines = {engine: fitted(spec, name, group, engine) for engine in ENGINES}
-            for task in group:
-                compared_here, sensitive_here = compare_on(engines, name, task, n_test)
-                compared, sensitive = compared + compared_here, sensitive + sensitive_here
-    return compared, sensitive
+            counts += [compare_on(engines, name, task, n_test) for task in group]
+    return tuple(int(total) for total in np.sum(counts, axis=0))
 
 
 def compare_on(engines, name, task, n_test):
