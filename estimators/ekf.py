@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
-from kkl_bench.estimators import kalman_kernels
+from kkl_bench.estimators import kalman_kernels, kalman_unrolled
 from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
@@ -91,6 +91,12 @@ class ExtendedKalman(KalmanBaseline):
 
     def run_compiled(self, model, settings, dt, y, u, out):
         mean, covariance, Q = self.prior()
+        if kalman_unrolled.unrollable(model):
+            kalman_unrolled.run_ekf(
+                model, y, u, dt, mean, covariance, Q, self.R_, settings["inflation"],
+                settings["threshold"], out,
+            )  # fmt: skip
+            return
         kalman_kernels.ekf(
             *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
             Q, self.R_, settings["inflation"], settings["threshold"], out,

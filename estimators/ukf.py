@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
-from kkl_bench.estimators import kalman_kernels
+from kkl_bench.estimators import kalman_kernels, kalman_unrolled
 from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
 from kkl_bench.protocol.simulate import rk4_step
@@ -100,6 +100,12 @@ class UnscentedKalman(KalmanBaseline):
         points = self.points(model.n_x)  # filterpy's weights, and its spread n + lambda
         lambda_ = points.alpha**2 * (model.n_x + points.kappa) - model.n_x
         mean, covariance, Q = self.prior()
+        if kalman_unrolled.unrollable(model):
+            kalman_unrolled.run_ukf(
+                model, y, u, dt, mean, covariance, Q, self.R_, points.Wm, points.Wc,
+                lambda_ + model.n_x, settings["inflation"], settings["threshold"], out,
+            )  # fmt: skip
+            return
         kalman_kernels.ukf(
             *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
             Q, self.R_, points.Wm, points.Wc, lambda_ + model.n_x, settings["inflation"],

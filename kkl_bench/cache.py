@@ -3,17 +3,21 @@
 The cache directory is ``--cache DIR``, else ``$KKL_BENCH_CACHE``, else
 ``.kkl_bench_cache`` in the working directory. Estimators store content-keyed
 files under ``<cache>/<kind>/`` (see :mod:`kkl_bench.kkl.cache`), each with a
-``.sha256`` sidecar that is checked before loading.
+``.sha256`` sidecar that is checked before loading; ``unrolled_kernels/`` holds the
+filters' generated kernels (:func:`import_generated`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
 import shutil
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 
 def default_cache_dir() -> Path:
@@ -77,3 +81,23 @@ def clear_cache(root: Path) -> int:
     freed = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
     shutil.rmtree(root)
     return freed
+
+
+def import_generated(source: str, folder: Path, stem: str) -> ModuleType:
+    """Import generated ``source`` as a module saved in ``folder`` (a kind of the cache),
+    named by ``stem`` and the source's hash with its checksum beside it, so that numba's
+    on-disk cache of the functions it compiles serves the next process, and a changed
+    source is a new file."""
+    name = f"{stem}_{hashlib.sha256(source.encode()).hexdigest()[:16]}"
+    if name in sys.modules:
+        return sys.modules[name]
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{name}.py"
+    if not path.exists() or path.read_text() != source:
+        write_atomically(path, source)
+        write_atomically(checksum_path(path), sha256_of(path))
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module

@@ -2,8 +2,9 @@
 
 Run with ``python -m pytest tests/benchmarks/test_kernel_batch.py --benchmark-only``.
 
-The compiled EKF kernel (``estimators/kalman_kernels.py``) on 1000 samples of Duffing and of
-Lorenz, at batches of 5 to 160 trajectories, one thread. Each records
+The compiled EKF's two kernels, the generic one (``estimators/kalman_kernels.py``) and the
+unrolled one (``estimators/kalman_unrolled.py``), side by side on 1000 samples of Duffing
+and of Lorenz, at batches of 1 to 160 trajectories, one thread. Each records
 ``ns_per_trajectory_step`` in its ``extra_info``; a line through the per-step costs
 ``batch * ns_per_trajectory_step`` gives the fixed cost of a step (its loops' set-up over
 the batch, whatever its size) and the cost of each trajectory in it (protocol 6.3 quotes
@@ -12,13 +13,17 @@ both beside the row's floor).
 
 import numpy as np
 import pytest
-from kkl_bench.estimators import kalman_kernels
+from kkl_bench.estimators import kalman_kernels, kalman_unrolled
 
 from kkl_bench.executors import thread_limit
 from kkl_bench.registry import systems
 
 STEPS = 1000
-BATCHES = (5, 10, 20, 40, 80, 160)
+BATCHES = (1, 5, 10, 20, 40, 80, 160)
+KERNELS = {
+    "generic": lambda model, arguments: kalman_kernels.ekf(*model.functions, *arguments),
+    "unrolled": lambda model, arguments: kalman_unrolled.run_ekf(model, *arguments[4:]),
+}
 
 
 def _case(system: str, batch: int):
@@ -28,20 +33,22 @@ def _case(system: str, batch: int):
     u = np.repeat(np.sin(0.05 * np.arange(STEPS))[None], batch, axis=0)
     n = model.n_x
     out = np.full((batch, STEPS, n), np.nan)
-    return (
-        *model.functions, model.p, model.q, model.s, model.g, y, u, 0.05,
+    return model, (
+        model.p, model.q, model.s, model.g, y, u, 0.05,
         np.zeros(n), np.eye(n), 1e-3 * np.eye(n), 0.01 * np.eye(model.n_y), 1.0, np.inf, out,
     )  # fmt: skip
 
 
 @pytest.mark.parametrize("batch", BATCHES)
 @pytest.mark.parametrize("system", ["duffing", "lorenz"])
-def test_ekf_kernel_against_batch(benchmark, system, batch):
-    arguments = _case(system, batch)
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_ekf_kernel_against_batch(benchmark, kernel, system, batch):
+    model, arguments = _case(system, batch)
+    run = KERNELS[kernel]
     with thread_limit(1):
-        kalman_kernels.ekf(*arguments)  # compiled before timing
+        run(model, arguments)  # compiled before timing
         assert np.isfinite(arguments[-1]).all()
-        benchmark(kalman_kernels.ekf, *arguments)
+        benchmark(run, model, arguments)
     benchmark.extra_info["ns_per_trajectory_step"] = (
         1e9 * benchmark.stats.stats.min / (batch * STEPS)
     )
