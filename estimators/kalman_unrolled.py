@@ -15,9 +15,8 @@ by its hash, and compiled with numba's on-disk cache, so a process that needs a 
 another already compiled loads it. :func:`unrollable` says which models get one; the
 others run the generic kernels.
 
-Shapes: the kernels take ``y: (steps, n_y, batch)`` and ``u: (steps, batch)`` (the
-trajectories on the last axis, so that each lane's loads are contiguous) and fill
-``estimates: (steps, n_x, batch)``, NaN where a trajectory has stopped.
+Shapes: the kernels take ``y: (batch, steps, 1)`` and ``u: (batch, steps)`` and fill
+``estimates: (batch, steps, n_x)``, NaN where a trajectory has stopped.
 """
 
 from __future__ import annotations
@@ -381,14 +380,14 @@ def _sample(model: CompiledModel, predict, update, robust: bool, inflated: bool)
         ]
     )
     x_new, P_new = update(program, traced, x_prior, P_prior, robust)
-    lines = ["u_k = u[k - 1, b]", "y_k_0 = y[k, 0, b]", *program.lines]
+    lines = ["u_k = u[b, k - 1]", "y_k_0 = y[b, k, 0]", *program.lines]
     for i in range(n):
         lines.append(f"x_{i} = choose(taken, {source_of(x_new[i])}, {source_of(x_prior[i])})")
     for i, j in np.ndindex(n, n):
         new, old = source_of(P_new[i, j]), source_of(P_prior[i, j])
         lines.append(f"P_{i}_{j} = choose(taken, {new}, {old})")
     for i in range(n):
-        lines.append(f"estimates[k, {i}, b] = choose(running, x_{i}, math.nan)")
+        lines.append(f"estimates[b, k, {i}] = choose(running, x_{i}, math.nan)")
     finite = " & ".join(f"math.isfinite(x_{i})" for i in range(n))
     lines.append(f"alive = running & {finite}")
     return lines
@@ -408,7 +407,7 @@ def _interleaved(lines: list[str], copies: int) -> list[str]:
     for line in lines:
         for copy in range(copies):
             renamed = local.sub(lambda match, c=copy: f"{match.group(1)}_{c}", line)
-            out.append(re.sub(r"\bb\]", f"b{copy}]", renamed))
+            out.append(renamed.replace("[b, ", f"[b{copy}, "))
     return out
 
 
@@ -419,7 +418,7 @@ def _module(model: CompiledModel, sample: list[str], weights: list[str] | None =
     lines reading the UKF's ``Wm`` and ``Wc`` into locals."""
     n = model.n_x
     head = [
-        "steps, batch = u.shape",
+        "batch, steps = u.shape",
         "half = 0.5 * dt",
         "sixth = dt / 6.0",
         *loaded("p", "p", model.p.shape),
@@ -508,23 +507,23 @@ def _source(source_function, model: CompiledModel, robust: bool, inflated: bool)
 def _run(source_function, model: CompiledModel, y, u, dt, x0, P0, arguments, settings, out):
     """Run the kernel ``source_function(model, robust, inflated)`` writes:
     ``y: (batch, steps, 1)``, ``u: (batch, steps)``, ``settings``: ``(inflation,
-    threshold)``; fills ``out: (batch, steps, n_x)``. The batch is padded to a multiple of
-    :data:`LANES` with unmeasured trajectories."""
+    threshold)``; fills ``out: (batch, steps, n_x)`` (C-ordered). A batch that is not a
+    multiple of :data:`LANES` is padded with unmeasured trajectories."""
     inflation, threshold = settings
     source = _source(source_function, model, bool(np.isfinite(threshold)), inflation != 1.0)
     batch, steps, _ = y.shape
     padded = -(-batch // LANES) * LANES
-    y_lanes = np.full((steps, 1, padded), np.nan)
-    y_lanes[:, :, :batch] = y.transpose(1, 2, 0)
-    u_lanes = np.zeros((steps, padded))
-    u_lanes[:, :batch] = u.T
-    estimates = np.empty((steps, model.n_x, padded))
+    estimates = out
+    if padded != batch:
+        y = np.concatenate([y, np.full((padded - batch, steps, 1), np.nan)])
+        u = np.concatenate([u, np.zeros((padded - batch, steps))])
+        estimates = np.empty((padded, steps, model.n_x))
     with _slp_vectorizer():
         _kernel(source)(
-            model.p, model.s, model.g, y_lanes, u_lanes, dt, x0, P0, *arguments, *settings,
-            estimates,
-        )  # fmt: skip
-    out[...] = estimates[:, :, :batch].transpose(2, 0, 1)
+            model.p, model.s, model.g, y, u, dt, x0, P0, *arguments, *settings, estimates
+        )
+    if padded != batch:
+        out[...] = estimates[:batch]
 
 
 def run_ekf(model: CompiledModel, y, u, dt, x0, P0, Q, R, inflation, threshold, out) -> None:
