@@ -5,10 +5,12 @@ any size, and pay for it with a loop per operation and a call per model function
 every step. For a system of a few states measured through one output, the kernels here
 are written for that system: its model's functions and the filter's algorithm are traced
 (:mod:`kkl_bench.protocol.scalar_source`) into the straight-line arithmetic of one
-trajectory's predict and update, and that code runs inside one loop over the batch,
-which the compiler vectorizes. The traced operations are the generic kernel's, in its
-order, so the estimates are bit-identical to it (``tests/test_unrolled_kernels.py``),
-and through it equal the reference engine's (protocol 6.3).
+trajectory's predict and update. :data:`LANES` copies of that code, one per trajectory,
+interleaved statement by statement, run over the batch in blocks of :data:`LANES`, their
+states in registers from sample to sample, and LLVM's SLP vectorizer packs the copies
+into vector instructions. The traced operations are the generic kernel's, in its order,
+so the estimates are bit-identical to it (``tests/test_unrolled_kernels.py``), and
+through it equal the reference engine's (protocol 6.3).
 
 A kernel's source is written to ``unrolled_kernels/`` under the cache directory, named
 by its hash, and compiled with numba's on-disk cache, so a process that needs a kernel
@@ -61,7 +63,9 @@ def unrollable(model: CompiledModel | None) -> bool:
 
 
 class _Traced:
-    """A model's functions traced at one trajectory: what the step's algorithm calls."""
+    """A model's functions traced at one trajectory: what the step's algorithm calls. The
+    step's time quantities are the kernel's locals ``dt``, ``half`` (``dt / 2``), ``sixth``
+    (``dt / 6``) and the previous sample's input ``u_k``."""
 
     def __init__(self, program: Program, model: CompiledModel) -> None:
         self.program, self.model = program, model
@@ -69,6 +73,7 @@ class _Traced:
         self.p = scalars(program, "p", model.p.shape)
         self.s = scalars(program, "s", model.s.shape)
         self.g = scalars(program, "g", model.g.shape)
+        self.dt, self.half, self.sixth, self.u = map(program.named, ("dt", "half", "sixth", "u_k"))
 
     def drift(self, x: np.ndarray) -> np.ndarray:
         out = np.empty((self.n, 1), dtype=object)
@@ -118,8 +123,9 @@ def _stage_point(x, k, scale):
     return np.array([x[i] + scale * k[i] for i in range(len(x))], dtype=object)
 
 
-def _rk4_step(model: _Traced, x, u, dt, half, sixth):
+def _rk4_step(model: _Traced, x):
     """:func:`kkl_bench.protocol.compiled.rk4_step` at one trajectory."""
+    u, dt, half, sixth = model.u, model.dt, model.half, model.sixth
     k1 = model.vector_field(x, u)
     k2 = model.vector_field(_stage_point(x, k1, half), u)
     k3 = model.vector_field(_stage_point(x, k2, half), u)
@@ -144,8 +150,9 @@ def _chain(stage_jacobian, previous, scale):
     return out
 
 
-def _rk4_step_jacobian(model: _Traced, x, u, dt, half, sixth):
+def _rk4_step_jacobian(model: _Traced, x):
     """:func:`kkl_bench.protocol.compiled.rk4_step_jacobian` at one trajectory."""
+    u, dt, half, sixth = model.u, model.dt, model.half, model.sixth
     k = model.vector_field(x, u)
     d1 = model.drift_jacobian(x)
     stage = _stage_point(x, k, half)
@@ -197,17 +204,19 @@ def _huber_noise(program: Program, R, residual, S, threshold):
     return program.let(f"{source_of(R)} / {smaller.name}")
 
 
+def _inflated(program: Program, P, Q):
+    """``inflation (P - Q) + Q`` entry by entry (``kalman_kernels._inflate``)."""
+    inflation = program.named("inflation")
+    return np.vectorize(lambda p, q: inflation * (p - q) + q, otypes=[object])(P, Q)
+
+
 def _ekf_predict(program: Program, model: _Traced, x, P, inflated: bool):
     """The EKF's predict at one trajectory (``kalman_kernels.ekf``, ``k > 0``)."""
-    dt, half, sixth, u = (program.named(name) for name in ("dt", "half", "sixth", "u_k"))
-    F = _rk4_step_jacobian(model, x, u, dt, half, sixth)
-    x = model.constrain(_rk4_step(model, x, u, dt, half, sixth))
+    F = _rk4_step_jacobian(model, x)
+    x = model.constrain(_rk4_step(model, x))
     Q = scalars(program, "Q", P.shape)
     P = _matmul_transposed(_matmul(F, P), F) + Q
-    if inflated:
-        inflation = program.named("inflation")
-        P = np.vectorize(lambda p, q: inflation * (p - q) + q, otypes=[object])(P, Q)
-    return x, P
+    return x, _inflated(program, P, Q) if inflated else P
 
 
 def _measured(program: Program, alive: str) -> None:
@@ -315,18 +324,12 @@ def _unscented_transform(program: Program, points, noise):
 def _ukf_predict(program: Program, model: _Traced, x, P, inflated: bool):
     """The UKF's predict at one trajectory (``kalman_kernels.ukf``, ``k > 0``); defines
     ``alive_drawn``, whether the lane still runs once its sigma points are drawn."""
-    dt, half, sixth, u = (program.named(name) for name in ("dt", "half", "sixth", "u_k"))
     points, definite = _sigma_points(program, x, P)
     program.lines.append(f"alive_drawn = alive & (first | {definite.name})")
-    propagated = np.array(
-        [model.constrain(_rk4_step(model, point, u, dt, half, sixth)) for point in points]
-    )
+    propagated = np.array([model.constrain(_rk4_step(model, point)) for point in points])
     Q = scalars(program, "Q", P.shape)
     x, P = _unscented_transform(program, propagated, Q)
-    if inflated:
-        inflation = program.named("inflation")
-        P = np.vectorize(lambda p, q: inflation * (p - q) + q, otypes=[object])(P, Q)
-    return x, P
+    return x, _inflated(program, P, Q) if inflated else P
 
 
 def _ukf_update(program: Program, model: _Traced, x, P, robust: bool):

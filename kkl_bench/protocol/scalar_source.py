@@ -1,11 +1,11 @@
 """Straight-line scalar source traced from the compiled model: what the unrolled kernels run.
 
-The compiled engines' generic kernels (:mod:`kkl_bench.protocol.compiled`) sweep each
-operation over the batch, with the sizes known only at run time: a loop per operation and
-a call per model function, whatever the batch. An unrolled kernel instead runs one
-trajectory's whole step as straight-line scalar code, inside one loop over the batch that
-the compiler vectorizes (the trajectories side by side in the vector registers). Its
-source is written by tracing: an algorithm written over :class:`Scalar` values, and the
+The compiled engines' generic kernels (``estimators/kalman_kernels.py``, over the model
+of :mod:`kkl_bench.protocol.compiled`) sweep each operation over the batch, with the
+sizes known only at run time: a loop per operation and a call per model function,
+whatever the batch. An unrolled kernel (``estimators/kalman_unrolled.py``) instead runs
+one trajectory's whole step as straight-line scalar code. Its source is written by
+tracing: an algorithm written over :class:`Scalar` values, and the
 model's own numba functions run in Python (``py_func``) on object arrays of them, record
 each operation as one line of a :class:`Program`, in the order they run, so the unrolled
 kernel performs the generic kernel's operations in the generic kernel's order and its
