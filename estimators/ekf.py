@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
-from kkl_bench.estimators import kalman_kernels, kalman_unrolled
+from kkl_bench.estimators import kalman_kernels, kalman_large, kalman_unrolled
 from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
@@ -81,12 +81,16 @@ class ExtendedKalman(KalmanBaseline):
         )
 
     def count_flops(self, model):
+        robust = math.isfinite(self.settings_["threshold"])
+        if model.n_x >= kalman_large.MIN_STATES:
+            nonzeros = kalman_large.structural_nonzeros(model)
+            return kalman_large.flops_per_step(model, nonzeros, robust)
         n, m = model.n_x, model.n_y
         predict = model.step_flops + model.step_jacobian_flops + 4 * n**3 + n**2  # F P F^T + Q
         gain = m * n + 2 * n * n * m + 2 * m * m * n + m * m + 2 * m**3 + 2 * n * m * m
         correction = m + 2 * n * m  # the residual and x + K r
         joseph = 2 * n * n * m + n * n + 4 * n**3 + 2 * n * m * m + 2 * n * n * m + n * n
-        huber = 5 * m + m * m if math.isfinite(self.settings_["threshold"]) else 0
+        huber = 5 * m + m * m if robust else 0
         return predict + gain + correction + joseph + huber
 
     def run_compiled(self, model, settings, dt, y, u, out):
@@ -97,7 +101,8 @@ class ExtendedKalman(KalmanBaseline):
                 settings["threshold"], out,
             )  # fmt: skip
             return
-        kalman_kernels.ekf(
+        kernel = kalman_large.ekf if model.n_x >= kalman_large.MIN_STATES else kalman_kernels.ekf
+        kernel(
             *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
             Q, self.R_, settings["inflation"], settings["threshold"], out,
         )  # fmt: skip

@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from kkl_bench import convergence, families, variants
-from kkl_bench.cost import fastest_round_robin
+from kkl_bench.cost import fastest_round_robin, timed_variants
 from kkl_bench.estimator import Estimator
 from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.summary import summary_table
@@ -52,10 +52,21 @@ REFERENCE = "ekf"
 ONLINE = tuple(f"us_per_step_batch{batch}" for batch in BATCHES)
 REFERENCE_ONLINE = tuple(f"{REFERENCE}_{column}" for column in ONLINE)
 """The reference's online costs in a row's own timing run, beside the row's :data:`ONLINE`."""
-TIMING_COLUMNS = ("timing_run", "timing_commit", *ONLINE, *REFERENCE_ONLINE)
+ENGINE_ONLINE = tuple(f"reference_engine_{column}" for column in ONLINE)
+"""A row timed on its compiled engine: its reference engine's online costs in the same run."""
+TIMING_COLUMNS = (
+    "timing_run",
+    "timing_commit",
+    "engine",
+    *ONLINE,
+    *REFERENCE_ONLINE,
+    *ENGINE_ONLINE,
+)
 """What a study stores of its timings, per (estimator, n): the timing run that measured the
-row (1, 2, ...), the code's git commit in that run, its online costs and the reference's
-costs in that run."""
+row (1, 2, ...), the code's git commit in that run, the engine timed (as ``kkl-bench cost``
+names it: ``compiled`` or ``reference`` for a filter with engines, ``numpy`` for one without,
+``torch`` for a network), its online costs, the reference's costs in that run and, beside a
+compiled row, its reference engine's."""
 GROWTHS = {
     "rmse": "RMSE (mean over regimes)",
     "fit_time_s": "fit time (s)",
@@ -239,11 +250,14 @@ def _last_line(error: object) -> str:
 
 
 def time_estimators(
-    spec: RunSpec, fitted: dict[tuple[str, int], Estimator], repeats: int = 3
+    spec: RunSpec, fitted: dict[tuple[str, int], dict[str, Estimator]], repeats: int = 3
 ) -> pd.DataFrame:
-    """Online cost of each fitted ``(estimator, n)``, timed round-robin on one thread.
+    """Online cost of each fitted ``(estimator, n)`` on each of its engines
+    (:func:`fit_from_cache`), timed round-robin on one thread.
 
-    Returns columns estimator, n, batch, us_per_step (fastest of ``repeats``).
+    Returns columns estimator, n, engine (the key of ``fitted``'s engines), engine_used
+    (what ran: ``reference`` where a system has no compiled model), batch, us_per_step
+    (fastest of ``repeats``).
     """
     inputs = {}
     for n in {n for _, n in fitted}:
@@ -254,16 +268,25 @@ def time_estimators(
             for batch in BATCHES
         }
     calls = {
-        (name, n, batch): _estimate_call(estimator, *inputs[n][batch])
-        for (name, n), estimator in fitted.items()
+        (name, n, engine, batch): _estimate_call(estimator, *inputs[n][batch])
+        for (name, n), engines in fitted.items()
+        for engine, estimator in engines.items()
         for batch in BATCHES
     }
-    seconds, _ = fastest_round_robin(calls, rounds=repeats, max_seconds=math.inf)
-    best = {key: value * 1e6 / (key[2] * STEPS) for key, value in seconds.items()}
+    seconds, _ = fastest_round_robin(
+        calls, rounds=repeats, max_seconds=math.inf, group=lambda key: key[:3]
+    )
     return pd.DataFrame(
         [
-            {"estimator": name, "n": n, "batch": batch, "us_per_step": value}
-            for (name, n, batch), value in best.items()
+            {
+                "estimator": name,
+                "n": n,
+                "engine": engine,
+                "engine_used": getattr(fitted[name, n][engine], "engine_used", engine),
+                "batch": batch,
+                "us_per_step": value * 1e6 / (batch * STEPS),
+            }
+            for (name, n, engine, batch), value in seconds.items()
         ]
     )
 
@@ -273,10 +296,16 @@ def _estimate_call(estimator: Estimator, t, y, u):
     return lambda: estimator.estimate(t, y.copy(), u.copy())
 
 
-def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> Estimator:
-    """``estimator`` fitted for Lorenz-96 with ``n`` states (loaded from the run's cache)."""
+def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> dict[str, Estimator]:
+    """``estimator`` fitted for Lorenz-96 with ``n`` states (loaded from the run's cache), on
+    each engine it is timed on (:func:`kkl_bench.cost.timed_variants`: a filter with
+    engines on its compiled engine and its reference engine beside it, as ``kkl-bench
+    cost`` times it)."""
     system = system_name(n)
-    return variants.build(estimator).fit(make_fit_context(spec, estimator, system, seed))
+    return {
+        engine: variants.build(variant).fit(make_fit_context(spec, variant, system, seed))
+        for engine, variant in timed_variants(estimator).items()
+    }
 
 
 def _beside_reference(frame: pd.DataFrame) -> pd.DataFrame:
@@ -289,12 +318,28 @@ def _beside_reference(frame: pd.DataFrame) -> pd.DataFrame:
 
 def timing_frame(timings: pd.DataFrame, commit: str | None = None) -> pd.DataFrame:
     """:func:`time_estimators`' long frame as one row per (estimator, n) with
-    :data:`TIMING_COLUMNS`; the reference's costs are those it was timed at in this run,
-    ``commit`` the code's (:func:`kkl_bench.results.provenance`). The run is numbered 1
-    until :func:`add_timings` places it after a stored study's."""
-    wide = timings.pivot_table(index=["estimator", "n"], columns="batch", values="us_per_step")
+    :data:`TIMING_COLUMNS`: a row timed on both engines is its compiled engine's, with its
+    reference engine's costs beside (:data:`ENGINE_ONLINE`); the reference's costs are
+    those it was timed at in this run (its compiled engine's), ``commit`` the code's
+    (:func:`kkl_bench.results.provenance`). The run is numbered 1 until
+    :func:`add_timings` places it after a stored study's."""
+    wide = timings.pivot_table(
+        index=["estimator", "n", "engine", "engine_used"], columns="batch", values="us_per_step"
+    )
     wide.columns = [f"us_per_step_batch{batch}" for batch in wide.columns]
-    frame = _beside_reference(wide.reset_index()).assign(timing_run=1, timing_commit=commit)
+    wide = wide.reset_index()
+    keys = list(zip(wide["estimator"], wide["n"], strict=True))
+    compiled = {
+        key for key, engine in zip(keys, wide["engine"], strict=True) if engine == "compiled"
+    }
+    beside = pd.Series([key in compiled for key in keys], index=wide.index)
+    engines = wide[beside & (wide["engine"] == "reference")][["estimator", "n", *ONLINE]]
+    engines.columns = ["estimator", "n", *ENGINE_ONLINE]
+    rows = wide[~beside | (wide["engine"] == "compiled")].drop(columns="engine")
+    frame = rows.rename(columns={"engine_used": "engine"}).merge(
+        engines, on=["estimator", "n"], how="left"
+    )
+    frame = _beside_reference(frame).assign(timing_run=1, timing_commit=commit)
     return frame[["estimator", "n", *TIMING_COLUMNS]]
 
 
@@ -307,6 +352,10 @@ def stored_timings(study: Path | None) -> pd.DataFrame:
     frame = frame[frame[list(ONLINE)].notna().any(axis=1)]
     if "timing_run" not in frame:  # written before studies recorded their timing runs
         frame = _beside_reference(frame).assign(timing_run=1, timing_commit=None)
+    for column in ("engine", *ENGINE_ONLINE):  # written before studies timed two engines
+        if column not in frame:
+            frame[column] = math.nan
+    frame["engine"] = frame["engine"].astype(object)
     return frame[["estimator", "n", *TIMING_COLUMNS]].reset_index(drop=True)
 
 
@@ -342,7 +391,7 @@ def scaling_frame(cells: pd.DataFrame, timings: pd.DataFrame) -> pd.DataFrame:
     (:data:`RMSE_RATIO`, :data:`SPEEDUPS`; NaN where either side has no number)."""
     frame = cells.merge(timings, on=["estimator", "n"], how="left")
     frame.insert(1, "family", frame["estimator"].map(families.row_family))
-    costs = [*ONLINE, *REFERENCE_ONLINE]
+    costs = [*ONLINE, *REFERENCE_ONLINE, *ENGINE_ONLINE]
     frame[costs] = frame[costs].astype(float)  # NaN where untimed, also when nothing is
     return with_ratios(frame).sort_values(["estimator", "n"]).reset_index(drop=True)
 

@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 
+from kkl_bench import convergence
 from kkl_bench.estimator import Estimator
 from kkl_bench.protocol.metrics import (
     mark_diverged,
@@ -39,12 +40,20 @@ def timed_estimate(estimator: Estimator, data: Trajectories) -> tuple[np.ndarray
     return x_hat, time.perf_counter() - start
 
 
+def training_diverged(estimator: Estimator) -> bool:
+    """Whether the fit report of ``estimator`` says one of its trainings diverged
+    (protocol 6.5): an estimate that is never finite is then that training's outcome,
+    scored as diverged on every trajectory, not an estimator fault."""
+    return convergence.verdict([estimator.fit_report()]) == convergence.DIVERGED
+
+
 def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
     """Run ``estimator`` on ``test_set`` and compute the protocol's metrics.
 
     Returns the metric and timing fields of a :class:`CellResult` and the
     truth and estimate of the first test trajectory. Raises ``ValueError`` if
-    the estimate has the wrong shape.
+    the estimate has the wrong shape, or is NaN or inf from the first sample on every
+    trajectory while no training of the estimator diverged (:func:`training_diverged`).
     """
     data = test_set.data
     dt = float(data.t[1] - data.t[0])
@@ -54,7 +63,7 @@ def score(estimator: Estimator, test_set: TestSet) -> tuple[dict, KeptEstimate]:
         raise ValueError(
             f"estimate returned shape {x_hat.shape}; expected {data.x.shape} (batch, steps, n_x)"
         )
-    if not np.isfinite(x_hat[:, 0]).all(axis=-1).any():
+    if not np.isfinite(x_hat[:, 0]).all(axis=-1).any() and not training_diverged(estimator):
         raise ValueError(
             "estimate is NaN or inf from the first sample on every trajectory: an estimator "
             "fault, not a divergence (a diverged trajectory loses track after a start)"

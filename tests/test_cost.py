@@ -52,6 +52,20 @@ def test_round_robin_takes_turns_keeps_the_fastest_and_stops_slow_calls(monkeypa
     assert saved == [{"slow": 1, "fast": 1}, {"slow": 2, "fast": 2}, {"slow": 2, "fast": 3}]
 
 
+def test_the_first_call_of_each_group_runs_untimed_before_it_is_timed(monkeypatch):
+    clock, log = FakeClock(), []
+    monkeypatch.setattr(cost.time, "perf_counter", clock)
+    calls = {
+        ("ekf", "zero"): clock.call([9.0, 1.0, 9.0, 1.0], log, "ekf zero"),
+        ("ekf", "square"): clock.call([1.0, 1.0], log, "ekf square"),
+        ("ukf", "zero"): clock.call([9.0, 2.0, 9.0, 2.0], log, "ukf zero"),
+    }
+    best, counts = cost.fastest_round_robin(calls, rounds=2, group=lambda key: key[0])
+    assert log == ["ekf zero", "ekf zero", "ekf square", "ukf zero", "ukf zero"] * 2
+    assert best == {("ekf", "zero"): 1.0, ("ekf", "square"): 1.0, ("ukf", "zero"): 2.0}
+    assert counts == dict.fromkeys(calls, 2)
+
+
 def test_a_call_slower_than_max_seconds_is_timed_once(monkeypatch):
     clock, log = FakeClock(), []
     monkeypatch.setattr(cost.time, "perf_counter", clock)

@@ -21,6 +21,18 @@ class AllNaN(Estimator):
         return np.full((*y.shape[:2], self.check_fitted().system.n_x), np.nan)
 
 
+class DivergedTraining(AllNaN):
+    """Never finite, after a training whose validation curve ran away (protocol 6.5)."""
+
+    family = "learned"
+
+    def fit_report(self):
+        return {
+            "spent": {"training": {"steps": 400, "seconds": 1.0}},
+            "training_log": {"validation_curve": [[0, 11.9], [200, math.inf], [400, math.nan]]},
+        }
+
+
 class Astronomical(Estimator):
     """Finite, but 1e30 away from every state on its last trajectory."""
 
@@ -70,6 +82,17 @@ def test_an_estimate_that_is_never_finite_is_an_error_cell_and_exit_1(
     cell = load_results(tmp_path).iloc[0]
     assert cell["status"] == "error"
     assert "NaN or inf from the first sample on every trajectory" in cell["error"]
+
+
+def test_a_never_finite_estimate_after_a_diverged_training_is_a_diverged_cell(
+    register_estimator, tmp_path, capsys
+):
+    register_estimator("diverged_training", DivergedTraining)
+    args = ["run", "--estimator", "diverged_training", "--system", "duffing", "--regime", "zero"]
+    assert main([*args, "--results", str(tmp_path)]) == 0
+    row = summary_table(load_results(tmp_path)).iloc[0]
+    assert row["n_diverged"] == row["n_test"] > 0 and row["rmse_mean"] == math.inf
+    assert row["converged"] == "diverged"
 
 
 def test_check_names_the_one_true_failure_of_an_all_nan_estimator():

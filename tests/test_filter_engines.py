@@ -112,6 +112,17 @@ def test_the_compiled_engine_equals_filterpy_on_every_quick_cell(name, track, tm
         assert sensitive == 0
 
 
+@pytest.mark.parametrize("n", [5, pytest.param(40, marks=pytest.mark.slow)])
+def test_the_large_system_ekf_equals_filterpy_on_lorenz96(n, tmp_path):
+    """The EKF of systems beyond the interleaved kernels' (``kalman_large``: one trajectory
+    at a time, sparse factors by their nonzeros, the update on BLAS)."""
+    systems = (f"lorenz96-n{n}",)
+    spec = spec_for(("more-systems",), tmp_path=tmp_path, systems=systems, regimes=("sinusoid",))
+    compared, sensitive = compare_engines(spec, "ekf", spec.tasks(), spec.profile.n_test)
+    print(f"ekf on Lorenz-96, n = {n}: {sensitive} of {compared} trajectories rounding-sensitive")
+    assert compared > 0 and sensitive < compared
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", FILTERS)
 def test_the_compiled_engine_equals_filterpy_on_sampled_standard_cells(name, tmp_path):

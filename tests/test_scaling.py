@@ -175,15 +175,55 @@ def test_crossover_compares_each_row_with_the_ekf_of_its_own_timing_run():
     assert scaling.crossover(study)[("kkl", 20)] == [5, 10, 20]
 
 
-def timings(pairs, cost):
-    """time_estimators' frame: every (estimator, n) at both batches, costing ``cost(name, n)``."""
+def timings(pairs, cost, engines=("numpy",)):
+    """time_estimators' frame: every (estimator, n) at both batches on each of ``engines``,
+    costing ``cost(name, n)`` (``cost(name, n, engine)`` with several engines)."""
     return pd.DataFrame(
         [
-            {"estimator": name, "n": n, "batch": batch, "us_per_step": cost(name, n) * batch}
+            {
+                "estimator": name,
+                "n": n,
+                "engine": engine,
+                "engine_used": engine,
+                "batch": batch,
+                "us_per_step": (cost(name, n, engine) if len(engines) > 1 else cost(name, n))
+                * batch,
+            }
             for name, n in pairs
+            for engine in engines
             for batch in scaling.BATCHES
         ]
     )
+
+
+def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_engine_beside():
+    pairs = [("ekf", 40), ("kkl", 40)]
+    reference = {"compiled": 1.0, "reference": 50.0}
+    frame = scaling.timing_frame(
+        timings(pairs, lambda name, n, engine: reference[engine], ("compiled", "reference"))
+        .query("estimator == 'ekf' or engine == 'compiled'")
+        .assign(engine_used=lambda f: f["engine"].where(f["estimator"] == "ekf", "torch")),
+        commit="abc",
+    ).set_index(["estimator", "n"])
+    assert frame.loc[("ekf", 40), "engine"] == "compiled"
+    assert frame.loc[("ekf", 40), "us_per_step_batch20"] == 20.0
+    assert frame.loc[("ekf", 40), "reference_engine_us_per_step_batch20"] == 1000.0
+    assert frame.loc[("kkl", 40), "engine"] == "torch"  # one engine: no reference beside
+    assert math.isnan(frame.loc[("kkl", 40), "reference_engine_us_per_step_batch20"])
+    assert frame.loc[("kkl", 40), "ekf_us_per_step_batch20"] == 20.0  # the compiled EKF
+    study = scaling.scaling_frame(
+        pd.DataFrame(
+            [
+                {"estimator": name, "n": 40, "status": "ok", "rmse": 0.1, "fit_time_s": 1.0,
+                 "converged": "", "reason": None, "nrmse": 0.1, "overwrite": False}
+                for name in ("ekf", "kkl")
+            ]
+        ),
+        frame.reset_index(),
+    )  # fmt: skip
+    text = render_scaling(study, "standard")
+    assert "`ekf`: timed on the compiled engine, the reference engine's cost beside it" in text
+    assert "| 20 (reference 1e+03) |" in text
 
 
 def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):

@@ -14,6 +14,7 @@ from kkl_bench.report import markdown
 from kkl_bench.report.model import HTML, Figure, Section, Table, Text
 from kkl_bench.scaling import (
     BATCHES,
+    ENGINE_ONLINE,
     GROWTHS,
     NOT_RUN,
     ONLINE,
@@ -46,8 +47,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                     _rmse(row),
                     _cost(row.fit_time_s) if ok else "-",
                     row.converged if ok else "-",
-                    _cost(row.us_per_step_batch20),
-                    _cost(row.us_per_step_batch1),
+                    *(_online(row, batch) for batch in BATCHES),
                     *(_cost(getattr(row, column)) for column in (RMSE_RATIO, *SPEEDUPS)),
                 ]
             )
@@ -97,7 +97,8 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 "best, 'not recorded': a model trained before the curves were). "
                 "Online cost: the fastest of three timed calls on the first "
                 f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
-                f"turn in one run on one thread. RMSE / EKF: the row's RMSE over the EKF's at "
+                f"turn in one run on one thread.{_engines(frame)} "
+                "RMSE / EKF: the row's RMSE over the EKF's at "
                 "the same n; EKF cost / cost: the EKF's µs/step in the row's own timing run over "
                 f"the row's (above 1: the row is that many times cheaper).{_later_runs(frame)}"
             ),
@@ -176,6 +177,36 @@ def _stored_reference(reference: pd.DataFrame, n: int, run: int) -> str:
         return ""
     costs = " and ".join(_cost(reference.loc[n, column]) for column in ONLINE)
     return f" (run {stored_run}: {costs})"
+
+
+def _engines(frame: pd.DataFrame) -> str:
+    """What the study's rows with two engines were timed on, read from their timings."""
+    if "engine" not in frame:  # a study timed before engines were
+        return ""
+    compiled = frame[frame["engine"] == "compiled"]
+    if compiled.empty:
+        return ""
+    reference = compiled[compiled["estimator"] == REFERENCE]
+    compared = (
+        f" The {REFERENCE.upper()} every row is compared with ran its compiled engine at n = "
+        f"{', '.join(map(str, sorted(reference['n'])))}."
+        if len(reference)
+        else ""
+    )
+    return (
+        f" {', '.join(f'`{name}`' for name in sorted(set(compiled['estimator'])))}: timed on "
+        "the compiled engine, the reference engine's cost beside it in brackets (protocol "
+        f"6.3).{compared}"
+    )
+
+
+def _online(row, batch: int) -> str:
+    """A row's online cost at ``batch``; a row timed on its compiled engine gives its
+    reference engine's beside it (``0.41 (reference 2046)``)."""
+    column = ONLINE[BATCHES.index(batch)]
+    cost = _cost(getattr(row, column))
+    beside = getattr(row, ENGINE_ONLINE[BATCHES.index(batch)], math.nan)
+    return cost if pd.isna(beside) else f"{cost} (reference {_cost(beside)})"
 
 
 def _rmse(row) -> str:
