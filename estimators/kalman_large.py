@@ -189,8 +189,12 @@ def ekf(
                 break
 
 
-MIN_STATES = 4
-"""Systems of this many states or more run :func:`ekf` (fewer: the interleaved kernels)."""
+MIN_STATES = 20
+"""Systems of this many states or more run :func:`ekf`; fewer run the batch-last kernels,
+which are cheaper there at 20 trajectories (Lorenz-96, µs a trajectory-step at batch 20:
+0.82 against 4.75 at n = 5, 3.7 against 8.2 at n = 10, 24.4 against 17.7 at n = 20;
+``tests/benchmarks/test_large_ekf.py``). The choice depends on the system alone, so an
+estimate does not depend on the batch it is computed in."""
 
 
 def flops_per_step(model: CompiledModel, nonzeros: tuple[int, int, int], robust: bool) -> int:

@@ -112,7 +112,7 @@ def test_the_compiled_engine_equals_filterpy_on_every_quick_cell(name, track, tm
         assert sensitive == 0
 
 
-@pytest.mark.parametrize("n", [5, pytest.param(40, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("n", [20, pytest.param(40, marks=pytest.mark.slow)])
 def test_the_large_system_ekf_equals_filterpy_on_lorenz96(n, tmp_path):
     """The EKF of systems beyond the interleaved kernels' (``kalman_large``: one trajectory
     at a time, sparse factors by their nonzeros, the update on BLAS)."""
