@@ -82,7 +82,7 @@ class ExtendedKalman(KalmanBaseline):
 
     def count_flops(self, model):
         robust = math.isfinite(self.settings_["threshold"])
-        if model.n_x >= kalman_large.MIN_STATES:
+        if kalman_large.takes(model):
             nonzeros = kalman_large.structural_nonzeros(model)
             return kalman_large.flops_per_step(model, nonzeros, robust)
         n, m = model.n_x, model.n_y
@@ -101,7 +101,7 @@ class ExtendedKalman(KalmanBaseline):
                 settings["threshold"], out,
             )  # fmt: skip
             return
-        kernel = kalman_large.ekf if model.n_x >= kalman_large.MIN_STATES else kalman_kernels.ekf
+        kernel = kalman_large.ekf if kalman_large.takes(model) else kalman_kernels.ekf
         kernel(
             *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
             Q, self.R_, settings["inflation"], settings["threshold"], out,

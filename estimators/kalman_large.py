@@ -197,6 +197,11 @@ which are cheaper there at 20 trajectories (Lorenz-96, µs a trajectory-step at 
 estimate does not depend on the batch it is computed in."""
 
 
+def takes(model: CompiledModel) -> bool:
+    """Whether :func:`ekf` runs ``model`` (it has :data:`MIN_STATES` states or more)."""
+    return model.n_x >= MIN_STATES
+
+
 def flops_per_step(model: CompiledModel, nonzeros: tuple[int, int, int], robust: bool) -> int:
     """Flops of one trajectory-step of :func:`ekf` on ``model``, with ``nonzeros = (J, F,
     H)``: the nonzeros of a stage Jacobian, of the RK4 step's Jacobian and of the output's

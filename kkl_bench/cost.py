@@ -113,9 +113,8 @@ def fastest_round_robin(
 
     With ``group`` (``group(key)``: the calls of one estimator, say, which follow one
     another), the first call of each group in a round runs once untimed before it is
-    timed. The first
-    call after another group's finds the caches holding the other's code and data: the
-    compiled EKF on Duffing's 20 test trajectories (0.4 ms a call) took 29 ns a
+    timed. The first call after another group's finds the caches holding the other's code
+    and data: the compiled EKF on Duffing's 20 test trajectories (0.4 ms a call) took 29 ns a
     trajectory-step right after a ``kalmannet`` estimate and 19 right after itself
     (protocol 6.3).
     """

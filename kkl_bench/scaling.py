@@ -328,14 +328,11 @@ def timing_frame(timings: pd.DataFrame, commit: str | None = None) -> pd.DataFra
     )
     wide.columns = [f"us_per_step_batch{batch}" for batch in wide.columns]
     wide = wide.reset_index()
-    keys = list(zip(wide["estimator"], wide["n"], strict=True))
-    compiled = {
-        key for key, engine in zip(keys, wide["engine"], strict=True) if engine == "compiled"
-    }
-    beside = pd.Series([key in compiled for key in keys], index=wide.index)
+    compiled = wide["engine"] == "compiled"
+    beside = compiled.groupby([wide["estimator"], wide["n"]]).transform("any")  # two engines
     engines = wide[beside & (wide["engine"] == "reference")][["estimator", "n", *ONLINE]]
     engines.columns = ["estimator", "n", *ENGINE_ONLINE]
-    rows = wide[~beside | (wide["engine"] == "compiled")].drop(columns="engine")
+    rows = wide[~beside | compiled].drop(columns="engine")
     frame = rows.rename(columns={"engine_used": "engine"}).merge(
         engines, on=["estimator", "n"], how="left"
     )
