@@ -174,6 +174,13 @@ class Estimator(ABC):
         """
         return {}
 
+    def adopt_choices(self, report: dict[str, Any]) -> None:
+        """Take from a fitted estimator's :meth:`fit_report` the choices its fit made from
+        data that change what :meth:`estimate` computes (not the learned weights), so that
+        a model of the same structure, not trained, runs the same arithmetic: the scaling
+        study times such models (protocol section 8). The default: none to take."""
+        return None
+
     def check_fitted(self) -> FitContext:
         """The fit context, or a :class:`NotFittedError` naming the estimator."""
         context = getattr(self, "context_", None)

@@ -35,6 +35,7 @@ import pandas as pd
 from kkl_bench import convergence, families, variants
 from kkl_bench.cost import fastest_round_robin, timed_variants
 from kkl_bench.estimator import Estimator
+from kkl_bench.kkl.optimize import probing
 from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.summary import summary_table
 from kkl_bench.systems.lorenz96 import SIZES
@@ -49,6 +50,9 @@ STEPS = 200
 the filters' Python loops at n = 40 would take minutes over the whole one."""
 REFERENCE = "ekf"
 """The estimator every timing run also times, at each size it times anything."""
+LOCAL_FILTER = "enkf[localization=3]"
+"""The localized ensemble filter (protocol 6.4), built for large rings: the study also says
+where each row is cheaper online than it."""
 ONLINE = tuple(f"us_per_step_batch{batch}" for batch in BATCHES)
 REFERENCE_ONLINE = tuple(f"{REFERENCE}_{column}" for column in ONLINE)
 """The reference's online costs in a row's own timing run, beside the row's :data:`ONLINE`."""
@@ -58,6 +62,7 @@ TIMING_COLUMNS = (
     "timing_run",
     "timing_commit",
     "engine",
+    "models",
     *ONLINE,
     *REFERENCE_ONLINE,
     *ENGINE_ONLINE,
@@ -65,8 +70,11 @@ TIMING_COLUMNS = (
 """What a study stores of its timings, per (estimator, n): the timing run that measured the
 row (1, 2, ...), the code's git commit in that run, the engine timed (as ``kkl-bench cost``
 names it: ``compiled`` or ``reference`` for a filter with engines, ``numpy`` for one without,
-``torch`` for a network), its online costs, the reference's costs in that run and, beside a
-compiled row, its reference engine's."""
+``torch`` for a network), the models timed (:data:`MODELS`), its online costs, the
+reference's costs in that run and, beside a compiled row, its reference engine's."""
+MODELS = ("trained", "untrained")
+"""What a timing run timed: the trained models of the cache (:func:`fit_from_cache`), or
+models of the same structure with their trainings cut short (:func:`fit_untrained`)."""
 GROWTHS = {
     "rmse": "RMSE (mean over regimes)",
     "fit_time_s": "fit time (s)",
@@ -308,6 +316,40 @@ def fit_from_cache(spec: RunSpec, estimator: str, n: int, seed: int) -> dict[str
     }
 
 
+UNTRAINED_STEPS = 1
+"""Optimizer steps (beyond :func:`~kkl_bench.kkl.optimize.probing`'s two) of every training
+of an untrained model (:func:`fit_untrained`)."""
+
+
+def fit_untrained(
+    spec: RunSpec, estimator: str, n: int, seed: int, report: dict
+) -> dict[str, Estimator]:
+    """``estimator`` built for Lorenz-96 with ``n`` states at the profile's sizes with every
+    training cut short (:data:`UNTRAINED_STEPS`, in ``spec``'s cache, which must be a
+    temporary one), then given the choices its published fit made from data (``report``,
+    :meth:`~kkl_bench.estimator.Estimator.adopt_choices`): the trained model's arithmetic
+    without its weights, for timing only, on each engine of :func:`fit_from_cache`. A
+    filter trains nothing and is fitted as usual."""
+    with probing(UNTRAINED_STEPS):
+        engines = fit_from_cache(spec, estimator, n, seed)
+    for fitted in engines.values():
+        fitted.adopt_choices(report)
+    return engines
+
+
+def published_report(results: pd.DataFrame, estimator: str, n: int, seed: int) -> dict:
+    """The fit report of ``estimator``'s cells at ``n`` and ``seed`` on the track (every
+    regime's cell keeps its fit's); empty if none holds one."""
+    cells = results[
+        (results.get("track") == TRACK)
+        & (results["estimator"] == estimator)
+        & (results["system"] == system_name(n))
+        & (results["seed"] == seed)
+    ]
+    reports = [report for report in cells.get("fit_report", ()) if isinstance(report, dict)]
+    return reports[0] if reports else {}
+
+
 def _beside_reference(frame: pd.DataFrame) -> pd.DataFrame:
     """``frame`` (estimator, n and :data:`ONLINE`, all from one timing run) with the
     reference's costs at each row's size as :data:`REFERENCE_ONLINE`."""
@@ -316,12 +358,15 @@ def _beside_reference(frame: pd.DataFrame) -> pd.DataFrame:
     return frame.merge(reference, on="n", how="left")
 
 
-def timing_frame(timings: pd.DataFrame, commit: str | None = None) -> pd.DataFrame:
+def timing_frame(
+    timings: pd.DataFrame, commit: str | None = None, models: str = "trained"
+) -> pd.DataFrame:
     """:func:`time_estimators`' long frame as one row per (estimator, n) with
     :data:`TIMING_COLUMNS`: a row timed on both engines is its compiled engine's, with its
     reference engine's costs beside (:data:`ENGINE_ONLINE`); the reference's costs are
     those it was timed at in this run (its compiled engine's), ``commit`` the code's
-    (:func:`kkl_bench.results.provenance`). The run is numbered 1 until
+    (:func:`kkl_bench.results.provenance`), ``models`` what was timed (:data:`MODELS`).
+    The run is numbered 1 until
     :func:`add_timings` places it after a stored study's."""
     wide = timings.pivot_table(
         index=["estimator", "n", "engine", "engine_used"], columns="batch", values="us_per_step"
@@ -336,7 +381,7 @@ def timing_frame(timings: pd.DataFrame, commit: str | None = None) -> pd.DataFra
     frame = rows.rename(columns={"engine_used": "engine"}).merge(
         engines, on=["estimator", "n"], how="left"
     )
-    frame = _beside_reference(frame).assign(timing_run=1, timing_commit=commit)
+    frame = _beside_reference(frame).assign(timing_run=1, timing_commit=commit, models=models)
     return frame[["estimator", "n", *TIMING_COLUMNS]]
 
 
@@ -352,7 +397,9 @@ def stored_timings(study: Path | None) -> pd.DataFrame:
     for column in ("engine", *ENGINE_ONLINE):  # written before studies timed two engines
         if column not in frame:
             frame[column] = math.nan
-    frame["engine"] = frame["engine"].astype(object)
+    if "models" not in frame:  # written when every study timed the cache's trained models
+        frame["models"] = MODELS[0]
+    frame[["engine", "models"]] = frame[["engine", "models"]].astype(object)
     return frame[["estimator", "n", *TIMING_COLUMNS]].reset_index(drop=True)
 
 
@@ -429,17 +476,24 @@ def exponents(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def crossover(frame: pd.DataFrame) -> dict[tuple[str, int], list[int]]:
-    """Per (estimator other than the reference, batch): the measured sizes ``n`` at which it
-    is cheaper online than the reference timed in the same run, ascending (empty if it
-    never is)."""
+def crossover(frame: pd.DataFrame, against: str = REFERENCE) -> dict[tuple[str, int], list[int]]:
+    """Per (estimator other than ``against``, batch): the measured sizes ``n`` at which it is
+    cheaper online than ``against`` timed in the same run, ascending (empty if it never
+    is). The reference is timed in every run; another row only counts at the sizes where
+    its own timing run is the estimator's (costs of two runs are not compared)."""
     result = {}
     for batch, column, reference_column in zip(BATCHES, ONLINE, REFERENCE_ONLINE, strict=True):
-        for estimator, rows_of in frame[frame["estimator"] != REFERENCE].groupby("estimator"):
+        if against == REFERENCE:
+            theirs = frame[reference_column]
+        else:
+            other = frame[frame["estimator"] == against].set_index("n")
+            same_run = frame["timing_run"] == frame["n"].map(other["timing_run"])
+            theirs = frame["n"].map(other[column]).where(same_run)
+        for estimator, rows_of in frame[frame["estimator"] != against].groupby("estimator"):
             result[estimator, batch] = sorted(
                 int(n)
                 for n, cost, reference in zip(
-                    rows_of["n"], rows_of[column], rows_of[reference_column], strict=True
+                    rows_of["n"], rows_of[column], theirs[rows_of.index], strict=True
                 )
                 if cost < reference
             )

@@ -1,14 +1,16 @@
 """The scaling study's arithmetic: cell summaries, fitted exponents, crossovers, the report."""
 
 import math
+import re
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench import scaling
+from kkl_bench import convergence, scaling
 from kkl_bench.report import markdown
 from kkl_bench.report.scaling import study_section, write_study
+from kkl_bench.task import get_profile
 
 REGIMES = ("zero", "constant", "sinusoid", "square")
 
@@ -175,6 +177,18 @@ def test_crossover_compares_each_row_with_the_ekf_of_its_own_timing_run():
     assert scaling.crossover(study)[("kkl", 20)] == [5, 10, 20]
 
 
+def test_crossover_with_the_local_filter_compares_costs_of_one_run_only():
+    study = frame()
+    local = study[study["estimator"] == "ekf"].assign(estimator=scaling.LOCAL_FILTER)
+    local["us_per_step_batch20"] = [1.0, 10.0, 100.0, 1000.0]  # kkl: 2, 8, 32, 128
+    local.loc[local["n"] == 40, "timing_run"] = 2  # timed in another run than kkl's
+    study = pd.concat([study, local], ignore_index=True)
+    assert scaling.crossover(study, scaling.LOCAL_FILTER)[("kkl", 20)] == [10, 20]
+    text = render_scaling(study, "standard")
+    assert f"and than `{scaling.LOCAL_FILTER}` timed in the same run" in text
+    assert "| kkl | every n timed | every n timed | n = 10, 20 | every n timed |" in squeezed(text)
+
+
 def timings(pairs, cost, engines=("numpy",)):
     """time_estimators' frame: every (estimator, n) at both batches on each of ``engines``,
     costing ``cost(name, n)`` (``cost(name, n, engine)`` with several engines)."""
@@ -276,6 +290,7 @@ def test_a_study_written_before_timing_runs_were_recorded_reads_as_run_one(tmp_p
     legacy.to_csv(tmp_path / "scaling.csv", index=False)
     stored = scaling.stored_timings(tmp_path / "scaling.csv").set_index(["estimator", "n"])
     assert (stored["timing_run"] == 1).all()
+    assert (stored["models"] == "trained").all()  # every study before timed the cache's
     assert stored.loc[("kkl", 40), "ekf_us_per_step_batch1"] == pytest.approx(3200.0)
     assert scaling.stored_timings(None).empty
     assert scaling.stored_timings(tmp_path / "absent.csv").empty
@@ -303,19 +318,24 @@ def test_report_states_exponents_crossovers_and_failures():
     assert "| Converged " in text and "| yes " in text
     assert "| kkl         | 0.00   | 3.00       | 2.00               | 0.50              |" in text
     assert "| ekf         | 0.00   | -          | 0.00               | 1.00              |" in text
-    assert "| kkl         | every n timed | every n timed |" in text
+    assert "| kkl | every n timed | every n timed |" in squeezed(text)
     study.loc[study["estimator"] == "kkl", "us_per_step_batch1"] = math.nan
     study.loc[(study["estimator"] == "kkl") & (study["n"] == 40), "us_per_step_batch20"] = math.nan
     study.loc[(study["estimator"] == "kkl") & (study["n"] == 20), "us_per_step_batch20"] = 1e9
     text = render_scaling(study, "standard")
-    assert "| kkl         | n = 5, 10  | not timed |" in text
+    assert "| kkl | n = 5, 10 | not timed |" in squeezed(text)
     study.loc[study["estimator"] == "kkl", "us_per_step_batch20"] *= 1e9
     text = render_scaling(study, "standard")  # timed up to n = 20, not at 40
-    assert "| kkl         | never up to n = 20 | not timed |" in text
+    assert "| kkl | never up to n = 20 | not timed |" in squeezed(text)
 
 
 def render_scaling(frame, profile):
     return markdown.section(study_section(frame, profile))
+
+
+def squeezed(text):
+    """``text`` with every run of spaces as one (a table's cells whatever their widths)."""
+    return re.sub(" +", " ", text)
 
 
 def test_curve_frame_gives_each_training_once_at_the_size_it_trained_at(tmp_path):
@@ -351,3 +371,39 @@ def test_a_later_run_at_a_new_size_gives_the_ekf_costs_once():
     study.loc[study["n"] == 40, "timing_run"] = 2  # the EKF and kkl first timed at 40 in run 2
     text = render_scaling(study, "standard")
     assert "(EKF in run 2: n = 40: 300 and 3.2e+03 µs/step at batch 20 and 1)." in text
+
+
+def test_a_timing_run_of_untrained_models_is_recorded_and_said():
+    pairs = [("ekf", 5), ("autonomous_kkl", 5)]
+    summary = pd.DataFrame(
+        [
+            {"estimator": name, "n": 5, "status": "ok", "rmse": 0.1, "fit_time_s": 1.0,
+             "converged": "", "reason": None, "nrmse": 0.1, "overwrite": False}
+            for name, _ in pairs
+        ]
+    )  # fmt: skip
+    texts = {}
+    for models in scaling.MODELS:
+        frame = scaling.timing_frame(timings(pairs, lambda name, n: 2.0), "abc", models)
+        assert (frame["models"] == models).all()
+        texts[models] = render_scaling(scaling.scaling_frame(summary, frame), "standard")
+    assert "timed on untrained models" in texts["untrained"]
+    assert "untrained" not in texts["trained"]
+
+
+def test_untrained_models_take_the_published_fits_choices(tmp_path):
+    """An injection gain of zero chosen on data skips the injection: the untrained model
+    must skip it too, whatever gain its cut-short training would choose."""
+    spec = scaling.RunSpec(
+        ("injection_kkl",), ("lorenz96-n5",), ("sinusoid",), get_profile("quick"),
+        tracks=(scaling.TRACK,), cache_dir=tmp_path,
+    )  # fmt: skip
+    report = {"training_log": {"injection_gain": 0.0}}
+    results = pd.DataFrame(cells("injection_kkl", 5, 0.1, 1.0, report=report))
+    published = scaling.published_report(results, "injection_kkl", 5, seed=0)
+    assert published == report
+    assert scaling.published_report(results, "injection_kkl", 10, seed=0) == {}
+    (fitted,) = scaling.fit_untrained(spec, "injection_kkl", 5, 0, published).values()
+    assert fitted.gain_ == 0.0
+    last_steps = {curve[-1][0] for _, curve in convergence.curves(fitted.fit_report())}
+    assert 2 + scaling.UNTRAINED_STEPS in last_steps  # Phase 1's trainings were cut short

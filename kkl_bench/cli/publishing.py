@@ -4,6 +4,8 @@ feeds it."""
 from __future__ import annotations
 
 import argparse
+import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -86,6 +88,15 @@ def add_parser(commands) -> None:
         help="time only the fitted (estimator, n) that the study in --out has no online cost "
         "for, beside the EKF at the same sizes, and keep the other rows' costs (to add an "
         "estimator or a size without fitting the rest again)",
+    )
+    scaling.add_argument(
+        "--untrained",
+        action="store_true",
+        help="time models built at the profile's sizes with their trainings cut short, in a "
+        "temporary cache, given the published fits' choices made from data (an injection "
+        "gain), instead of the trained models of --cache: the online cost is the "
+        "structure's arithmetic, not the weights' values (protocol section 8); the study "
+        "records which models each row's timing ran",
     )
     timing.add_argument(
         "--render-only",
@@ -219,16 +230,31 @@ def scaling_study(args: argparse.Namespace) -> int:
     study = args.out / "scaling.csv"
     stored = scaling.stored_timings(study if args.missing_only or args.render_only else None)
     wanted = [] if args.render_only else scaling.untimed(cells, stored)
-    fitted = {
-        (estimator, n): scaling.fit_from_cache(spec, estimator, n, args.seed)
-        for estimator, n in tqdm(
-            wanted, desc="loading fitted models", unit="model", disable=not wanted
-        )
-    }
-    if fitted:
-        timings = scaling.timing_frame(scaling.time_estimators(spec, fitted), commit)
-        stored = scaling.add_timings(stored, timings)
-    elif not args.render_only:
+    with tempfile.TemporaryDirectory() as untrained:  # kept until the models are timed
+        fitted = {
+            (estimator, n): (
+                scaling.fit_untrained(
+                    replace(spec, cache_dir=Path(untrained)),
+                    estimator,
+                    n,
+                    args.seed,
+                    scaling.published_report(results, estimator, n, args.seed),
+                )
+                if args.untrained
+                else scaling.fit_from_cache(spec, estimator, n, args.seed)
+            )
+            for estimator, n in tqdm(
+                wanted,
+                desc=f"{'building untrained' if args.untrained else 'loading fitted'} models",
+                unit="model",
+                disable=not wanted,
+            )
+        }
+        if fitted:
+            models = scaling.MODELS[1] if args.untrained else scaling.MODELS[0]
+            timings = scaling.time_estimators(spec, fitted)
+            stored = scaling.add_timings(stored, scaling.timing_frame(timings, commit, models))
+    if not fitted and not args.render_only:
         print(f"every fitted estimator already has its online cost in {study}")
     curves = scaling.curve_frame(results, args.seed)
     written = write_study(cells, stored, profile, args.out, curves)

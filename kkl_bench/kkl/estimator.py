@@ -52,6 +52,14 @@ class KKLEstimator(Estimator):
     def fit_model(self, context: FitContext) -> None:
         """Train (or load from the cache) the observer for ``context``."""
 
+    def adopt_choices(self, report: dict[str, Any]) -> None:
+        """The injection gain chosen on validation data (``training_log.injection_gain``
+        of ``injection_kkl`` and of ``static_hyperkkl[guard=True]``): a gain of zero skips
+        the injection's arithmetic."""
+        gain = (report.get("training_log") or {}).get("injection_gain")
+        if gain is not None:
+            self.gain_ = gain
+
     def fit_report(self) -> dict[str, Any]:
         report = self.model_.report()
         log = getattr(self, "log_", None) or {}

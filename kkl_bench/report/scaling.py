@@ -9,13 +9,15 @@ from pathlib import Path
 
 import pandas as pd
 
-from kkl_bench import figures
+from kkl_bench import families, figures
 from kkl_bench.report import markdown
 from kkl_bench.report.model import HTML, Figure, Section, Table, Text
 from kkl_bench.scaling import (
     BATCHES,
     ENGINE_ONLINE,
     GROWTHS,
+    LOCAL_FILTER,
+    MODELS,
     NOT_RUN,
     ONLINE,
     REFERENCE,
@@ -65,16 +67,21 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
         ]
         for row in fitted.itertuples()
     ]
-    cheaper = crossover(frame)
+    compared = [REFERENCE, *([LOCAL_FILTER] if LOCAL_FILTER in set(frame["estimator"]) else [])]
+    cheaper = {against: crossover(frame, against) for against in compared}
     crossings = [
         [
             estimator,
             *(
-                _crossing(cheaper[estimator, batch], _timed_sizes(frame, estimator, column))
+                _crossing(
+                    cheaper[against].get((estimator, batch)),
+                    _timed_sizes(frame, estimator, column, against),
+                )
+                for against in compared
                 for batch, column in zip(BATCHES, ONLINE, strict=True)
             ),
         ]
-        for estimator in sorted({name for name, _ in cheaper})
+        for estimator in sorted(set(frame["estimator"]) - {REFERENCE})
     ]
     note = (
         "\n\n† fitted to online costs from more than one timing run: the machine's "
@@ -97,7 +104,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                 "best, 'not recorded': a model trained before the curves were). "
                 "Online cost: the fastest of three timed calls on the first "
                 f"{STEPS} samples of the `{REGIME}` test trajectories, every estimator timed in "
-                f"turn in one run on one thread.{_engines(frame)} "
+                f"turn in one run on one thread.{_engines(frame)}{_models(frame)} "
                 "RMSE / EKF: the row's RMSE over the EKF's at "
                 "the same n; EKF cost / cost: the EKF's µs/step in the row's own timing run over "
                 f"the row's (above 1: the row is that many times cheaper).{_later_runs(frame)}"
@@ -126,10 +133,22 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
             ),
             *([Text(note.strip())] if note else []),
             Text(
-                "Where each estimator is cheaper online than the EKF timed in the same run "
-                "(sizes measured):"
+                "Where each estimator is cheaper online than the EKF"
+                + (f" and than `{LOCAL_FILTER}`" if len(compared) > 1 else "")
+                + " timed in the same run (sizes measured by both):"
             ),
-            _table(crossings, ["Estimator", "batch 20", "batch 1"]),
+            _table(
+                crossings,
+                [
+                    "Estimator",
+                    *(
+                        f"than {'the EKF' if against == REFERENCE else f'`{against}`'}, "
+                        f"batch {batch}"
+                        for against in compared
+                        for batch in BATCHES
+                    ),
+                ],
+            ),
             Figure("scaling", "scaling"),
         ],
     )
@@ -177,6 +196,24 @@ def _stored_reference(reference: pd.DataFrame, n: int, run: int) -> str:
         return ""
     costs = " and ".join(_cost(reference.loc[n, column]) for column in ONLINE)
     return f" (run {stored_run}: {costs})"
+
+
+def _models(frame: pd.DataFrame) -> str:
+    """Which timing runs timed untrained models (:data:`~kkl_bench.scaling.MODELS`), read
+    from the timings; nothing for a study of trained models only."""
+    if "models" not in frame:
+        return ""
+    untrained = frame[(frame["models"] == MODELS[1]) & (families.of_rows(frame) == "learned")]
+    if untrained.empty:
+        return ""
+    runs = sorted(set(untrained["timing_run"].astype(int)))
+    return (
+        f" The learned rows of timing run{'s' if len(runs) > 1 else ''} "
+        f"{', '.join(map(str, runs))} were timed on untrained models: built at the profile's "
+        "sizes with their trainings cut short and given the published fits' choices made "
+        "from data (the injection gain), so they run the trained models' arithmetic, not "
+        "their weights (protocol 8)."
+    )
 
 
 def _engines(frame: pd.DataFrame) -> str:
@@ -254,14 +291,21 @@ def _exponent(value: float) -> str:
     return f"{round(value, 2) + 0.0:.2f}" if math.isfinite(value) else "-"  # no "-0.00"
 
 
-def _timed_sizes(frame: pd.DataFrame, estimator: str, column: str) -> list[int]:
-    """The sizes at which ``estimator``'s online cost ``column`` was measured, ascending."""
+def _timed_sizes(frame: pd.DataFrame, estimator: str, column: str, against: str) -> list[int]:
+    """The sizes at which ``estimator``'s online cost ``column`` was measured, and
+    ``against``'s in the same run (the reference is timed in every run), ascending."""
     rows = frame[(frame["estimator"] == estimator) & frame[column].notna()]
+    if against != REFERENCE:
+        other = frame[(frame["estimator"] == against) & frame[column].notna()]
+        runs = dict(zip(other["n"], other["timing_run"], strict=True))
+        rows = rows[
+            [runs.get(n) == run for n, run in zip(rows["n"], rows["timing_run"], strict=True)]
+        ]
     return sorted(int(n) for n in rows["n"])
 
 
-def _crossing(cheaper: list[int], timed: Sequence[int]) -> str:
-    if not timed:
+def _crossing(cheaper: list[int] | None, timed: Sequence[int]) -> str:
+    if not timed or cheaper is None:
         return "not timed"
     if not cheaper:
         return f"never up to n = {max(timed)}"
