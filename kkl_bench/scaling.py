@@ -359,7 +359,7 @@ def _beside_reference(frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def timing_frame(
-    timings: pd.DataFrame, commit: str | None = None, models: str = "trained"
+    timings: pd.DataFrame, commit: str | None = None, models: str = MODELS[0]
 ) -> pd.DataFrame:
     """:func:`time_estimators`' long frame as one row per (estimator, n) with
     :data:`TIMING_COLUMNS`: a row timed on both engines is its compiled engine's, with its
@@ -381,8 +381,17 @@ def timing_frame(
     frame = rows.rename(columns={"engine_used": "engine"}).merge(
         engines, on=["estimator", "n"], how="left"
     )
-    frame = _beside_reference(frame).assign(timing_run=1, timing_commit=commit, models=models)
-    return frame[["estimator", "n", *TIMING_COLUMNS]]
+    frame = _beside_reference(frame).assign(timing_run=1, timing_commit=commit)
+    return _with_models(frame, models)[["estimator", "n", *TIMING_COLUMNS]]
+
+
+def _with_models(frame: pd.DataFrame, models: str | pd.Series) -> pd.DataFrame:
+    """``frame`` with its ``models`` column: ``models`` (:data:`MODELS`) for a learned row,
+    empty for a row that trains nothing (a filter has no models to time)."""
+    learned = families.of_rows(frame) == "learned"
+    return frame.assign(
+        models=pd.Series(models, index=frame.index).where(learned, "").astype(object)
+    )
 
 
 def stored_timings(study: Path | None) -> pd.DataFrame:
@@ -399,7 +408,8 @@ def stored_timings(study: Path | None) -> pd.DataFrame:
             frame[column] = math.nan
     if "models" not in frame:  # written when every study timed the cache's trained models
         frame["models"] = MODELS[0]
-    frame[["engine", "models"]] = frame[["engine", "models"]].astype(object)
+    frame = _with_models(frame, frame["models"])
+    frame["engine"] = frame["engine"].astype(object)
     return frame[["estimator", "n", *TIMING_COLUMNS]].reset_index(drop=True)
 
 
@@ -476,25 +486,27 @@ def exponents(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def cost_against(frame: pd.DataFrame, against: str, batch: int) -> pd.Series:
+    """Per row of ``frame``, the online cost at ``batch`` of ``against`` at the row's size,
+    timed in the row's own timing run; NaN where it was not (costs of two runs are not
+    compared). The reference is timed in every run, beside each row
+    (:data:`REFERENCE_ONLINE`)."""
+    column = ONLINE[BATCHES.index(batch)]
+    if against == REFERENCE:
+        return frame[REFERENCE_ONLINE[BATCHES.index(batch)]]
+    other = frame[frame["estimator"] == against].set_index("n")
+    same_run = frame["timing_run"] == frame["n"].map(other["timing_run"])
+    return frame["n"].map(other[column]).where(same_run)
+
+
 def crossover(frame: pd.DataFrame, against: str = REFERENCE) -> dict[tuple[str, int], list[int]]:
     """Per (estimator other than ``against``, batch): the measured sizes ``n`` at which it is
-    cheaper online than ``against`` timed in the same run, ascending (empty if it never
-    is). The reference is timed in every run; another row only counts at the sizes where
-    its own timing run is the estimator's (costs of two runs are not compared)."""
+    cheaper online than ``against`` timed in the same run (:func:`cost_against`),
+    ascending (empty if it never is)."""
     result = {}
-    for batch, column, reference_column in zip(BATCHES, ONLINE, REFERENCE_ONLINE, strict=True):
-        if against == REFERENCE:
-            theirs = frame[reference_column]
-        else:
-            other = frame[frame["estimator"] == against].set_index("n")
-            same_run = frame["timing_run"] == frame["n"].map(other["timing_run"])
-            theirs = frame["n"].map(other[column]).where(same_run)
+    for batch, column in zip(BATCHES, ONLINE, strict=True):
+        theirs = cost_against(frame, against, batch)
         for estimator, rows_of in frame[frame["estimator"] != against].groupby("estimator"):
-            result[estimator, batch] = sorted(
-                int(n)
-                for n, cost, reference in zip(
-                    rows_of["n"], rows_of[column], theirs[rows_of.index], strict=True
-                )
-                if cost < reference
-            )
+            cheaper = rows_of[rows_of[column] < theirs[rows_of.index]]
+            result[estimator, batch] = sorted(int(n) for n in cheaper["n"])
     return result

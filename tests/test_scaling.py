@@ -290,7 +290,9 @@ def test_a_study_written_before_timing_runs_were_recorded_reads_as_run_one(tmp_p
     legacy.to_csv(tmp_path / "scaling.csv", index=False)
     stored = scaling.stored_timings(tmp_path / "scaling.csv").set_index(["estimator", "n"])
     assert (stored["timing_run"] == 1).all()
-    assert (stored["models"] == "trained").all()  # every study before timed the cache's
+    models = stored["models"].unstack("n")
+    assert (models.loc["kkl"] == "trained").all()  # every study before timed the cache's
+    assert (models.loc["ekf"] == "").all()  # a filter has no models to time
     assert stored.loc[("kkl", 40), "ekf_us_per_step_batch1"] == pytest.approx(3200.0)
     assert scaling.stored_timings(None).empty
     assert scaling.stored_timings(tmp_path / "absent.csv").empty
@@ -385,7 +387,8 @@ def test_a_timing_run_of_untrained_models_is_recorded_and_said():
     texts = {}
     for models in scaling.MODELS:
         frame = scaling.timing_frame(timings(pairs, lambda name, n: 2.0), "abc", models)
-        assert (frame["models"] == models).all()
+        rows = frame.set_index("estimator")["models"]
+        assert rows.to_dict() == {"autonomous_kkl": models, "ekf": ""}  # a filter has none
         texts[models] = render_scaling(scaling.scaling_frame(summary, frame), "standard")
     assert "timed on untrained models" in texts["untrained"]
     assert "untrained" not in texts["trained"]

@@ -27,6 +27,7 @@ from kkl_bench.scaling import (
     SPEEDUPS,
     STEPS,
     TRACK,
+    cost_against,
     crossover,
     exponents,
     scaling_frame,
@@ -75,10 +76,10 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
             *(
                 _crossing(
                     cheaper[against].get((estimator, batch)),
-                    _timed_sizes(frame, estimator, column, against),
+                    _timed_sizes(frame, estimator, batch, against),
                 )
                 for against in compared
-                for batch, column in zip(BATCHES, ONLINE, strict=True)
+                for batch in BATCHES
             ),
         ]
         for estimator in sorted(set(frame["estimator"]) - {REFERENCE})
@@ -291,17 +292,12 @@ def _exponent(value: float) -> str:
     return f"{round(value, 2) + 0.0:.2f}" if math.isfinite(value) else "-"  # no "-0.00"
 
 
-def _timed_sizes(frame: pd.DataFrame, estimator: str, column: str, against: str) -> list[int]:
-    """The sizes at which ``estimator``'s online cost ``column`` was measured, and
-    ``against``'s in the same run (the reference is timed in every run), ascending."""
-    rows = frame[(frame["estimator"] == estimator) & frame[column].notna()]
-    if against != REFERENCE:
-        other = frame[(frame["estimator"] == against) & frame[column].notna()]
-        runs = dict(zip(other["n"], other["timing_run"], strict=True))
-        rows = rows[
-            [runs.get(n) == run for n, run in zip(rows["n"], rows["timing_run"], strict=True)]
-        ]
-    return sorted(int(n) for n in rows["n"])
+def _timed_sizes(frame: pd.DataFrame, estimator: str, batch: int, against: str) -> list[int]:
+    """The sizes at which ``estimator``'s online cost at ``batch`` was measured, and
+    ``against``'s in the same run (:func:`~kkl_bench.scaling.cost_against`), ascending."""
+    column = ONLINE[BATCHES.index(batch)]
+    timed = frame[column].notna() & cost_against(frame, against, batch).notna()
+    return sorted(int(n) for n in frame.loc[timed & (frame["estimator"] == estimator), "n"])
 
 
 def _crossing(cheaper: list[int] | None, timed: Sequence[int]) -> str:
