@@ -1,6 +1,7 @@
 import os
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from kkl_bench.executors import threads_per_worker
 from kkl_bench.registry import estimators
@@ -16,6 +17,15 @@ def pytest_configure(config):
         threads = threads_per_worker(int(workers))
         os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(threads)
         torch.set_num_threads(threads)
+
+
+# Hypothesis's per-example deadline and its too_slow health check are wall-clock limits
+# inside unit tests: on a machine whose cores the workers share with training tests, one
+# stalled draw (2 s against the usual 1 ms) failed a metric's property test that holds.
+# The properties and the number of examples are unchanged; speed is measured in
+# tests/benchmarks, never asserted here.
+settings.register_profile("kkl-bench", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("kkl-bench")
 
 
 @pytest.fixture
