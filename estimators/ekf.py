@@ -10,6 +10,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 from kkl_bench.estimators import kalman_kernels, kalman_large, kalman_unrolled
 from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
+from kkl_bench.kernel_cache import bind
 from kkl_bench.protocol.simulate import rk4_step, rk4_step_jacobian
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
@@ -102,8 +103,8 @@ class ExtendedKalman(KalmanBaseline):
             )  # fmt: skip
             return
         kernel = kalman_large.ekf if kalman_large.takes(model) else kalman_kernels.ekf
-        kernel(
-            *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
+        bind(kernel, *model.functions)(
+            model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
             Q, self.R_, settings["inflation"], settings["threshold"], out,
         )  # fmt: skip
 

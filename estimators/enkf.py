@@ -64,6 +64,7 @@ from kkl_bench.estimators.monte_carlo import trajectory_generators
 
 from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator
+from kkl_bench.kernel_cache import bind
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import Ring, System
 from kkl_bench.registry import estimators
@@ -342,13 +343,13 @@ class EnsembleKalman(TwoEngines, CalibratesOnLoggedData, Estimator):
         else:
             near, taper = self.taper_.near.astype(np.int64), self.taper_.weights
         y, u = self.kernel_inputs(y, u)
+        etkf = bind(enkf_kernels.etkf, model.drift, model.output, model.sense, model.constrain)
         for b, rng in enumerate(trajectory_generators(context.seed, y[:, 0])):
             initial = rng.uniform(context.x0_low, context.x0_high, (self.n, n_x))
             draws = (steps - 1, self.n, n_x) if sigma_w != 0 and steps > 1 else (0, self.n, n_x)
             noise = rng.standard_normal(draws)
-            enkf_kernels.etkf(
-                model.drift, model.output, model.sense, model.constrain, model.p, model.q,
-                model.s, model.g, y[b], u[b], dt, float(sigma_w),
+            etkf(
+                model.p, model.q, model.s, model.g, y[b], u[b], dt, float(sigma_w),
                 float(context.measurement.variance), float(self.inflation_), near, taper,
                 initial, noise, x_hat[b],
             )  # fmt: skip

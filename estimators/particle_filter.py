@@ -57,6 +57,7 @@ from scipy.special import logsumexp
 
 from kkl_bench.calibration import CalibratesOnLoggedData
 from kkl_bench.estimator import Estimator
+from kkl_bench.kernel_cache import bind
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
@@ -494,9 +495,12 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
         # moved and reweighted in place (the caller holds no other reference to them)
         particles = np.ascontiguousarray(particles, dtype=np.float64)
         log_weights = np.ascontiguousarray(log_weights, dtype=np.float64)
-        particle_kernels.propagate(
-            model.drift, model.output, model.output_jacobian, model.sense, model.sense_slope,
-            model.constrain, model.p, model.q, model.s, model.g, particles, log_weights,
+        propagate = bind(
+            particle_kernels.propagate, model.drift, model.output, model.output_jacobian,
+            model.sense, model.sense_slope, model.constrain,
+        )  # fmt: skip
+        propagate(
+            model.p, model.q, model.s, model.g, particles, log_weights,
             np.ascontiguousarray(u, dtype=np.float64), dt, np.ascontiguousarray(y), present,
             float(context.sigma_w**2), components, proposing, law, constants, w, v, uniform,
             transition,

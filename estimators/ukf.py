@@ -10,6 +10,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unsce
 from kkl_bench.estimators import kalman_kernels, kalman_unrolled
 from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
+from kkl_bench.kernel_cache import bind
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.registry import estimators
 
@@ -106,8 +107,8 @@ class UnscentedKalman(KalmanBaseline):
                 lambda_ + model.n_x, settings["inflation"], settings["threshold"], out,
             )  # fmt: skip
             return
-        kalman_kernels.ukf(
-            *model.functions, model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
+        bind(kalman_kernels.ukf, *model.functions)(
+            model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
             Q, self.R_, points.Wm, points.Wc, lambda_ + model.n_x, settings["inflation"],
             settings["threshold"], out,
         )  # fmt: skip

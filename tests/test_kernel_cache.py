@@ -1,0 +1,91 @@
+"""Filter kernels bound to a model's functions are compiled once per machine
+(kkl_bench.kernel_cache): the same results, and the next process loads them."""
+
+import functools
+import subprocess
+import sys
+
+import numba
+import numpy as np
+import pytest
+
+from kkl_bench import kernel_cache
+from kkl_bench.protocol import compiled
+from kkl_bench.registry import systems
+
+BOUND_STEP = """
+import numpy as np
+from kkl_bench.kernel_cache import bind
+from kkl_bench.protocol import compiled
+from kkl_bench.registry import systems
+
+model = systems.get("duffing")().compiled()
+step = bind(compiled.rk4_step, model.drift)
+x = np.array([[0.5, -1.0], [0.25, 2.0]])
+out, work = np.empty_like(x), np.empty((5, *x.shape))
+step(model.p, model.g, x, np.array([0.1, -0.3]), 0.05, out, work)
+print(sum(step.stats.cache_hits.values()), *out.ravel())
+"""
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    """An empty cache for this test, and no kernel bound in this process yet."""
+    monkeypatch.setenv("KKL_BENCH_CACHE", str(tmp_path))
+    kernel_cache._bound.cache_clear()
+    yield tmp_path
+    kernel_cache._bound.cache_clear()
+
+
+def step_inputs():
+    x = np.array([[0.5, -1.0], [0.25, 2.0]])  # (n_x, m): two points of Duffing's state
+    return x, np.array([0.1, -0.3]), 0.05, np.empty_like(x), np.empty((5, *x.shape))
+
+
+def test_a_bound_kernel_computes_what_the_kernel_does(cache):
+    model = systems.get("duffing")().compiled()
+    x, u, dt, bound_out, work = step_inputs()
+    kernel_cache.bind(compiled.rk4_step, model.drift)(model.p, model.g, x, u, dt, bound_out, work)
+    direct_out = np.empty_like(x)
+    compiled.rk4_step(model.drift, model.p, model.g, x, u, dt, direct_out, work)
+    np.testing.assert_array_equal(bound_out, direct_out)
+    assert len(list((cache / kernel_cache.FOLDER).glob("rk4_step_*.py"))) == 1
+
+
+def test_the_next_process_loads_the_bound_kernel_from_the_cache(cache):
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", BOUND_STEP], capture_output=True, text=True, check=True
+        ).stdout.split()
+        for _ in range(2)
+    ]
+    assert runs[0][0] == "0" and int(runs[1][0]) >= 1  # compiled, then loaded
+    assert runs[0][1:] == runs[1][1:]  # the same numbers
+
+
+def test_a_function_that_cannot_be_imported_by_name_is_bound_in_python(cache):
+    @numba.njit
+    def drift(x, p, out):  # a closure: no module attribute names it
+        out[:] = -x
+
+    x, u, dt, out, work = step_inputs()
+    step = kernel_cache.bind(compiled.rk4_step, drift)
+    assert isinstance(step, functools.partial)
+    step(np.zeros(0), np.zeros(2), x, u, dt, out, work)
+    expected = np.empty_like(x)
+    compiled.rk4_step(drift, np.zeros(0), np.zeros(2), x, u, dt, expected, work)
+    np.testing.assert_array_equal(out, expected)
+    assert not (cache / kernel_cache.FOLDER).exists()
+
+
+def test_a_change_to_any_source_file_changes_the_code_digest(tmp_path, monkeypatch):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "kernels.py").write_text("x = 1\n")
+    (tmp_path / "sub" / "model.py").write_text("y = 2\n")
+    monkeypatch.setattr(kernel_cache, "_paths", lambda subpackage: [str(tmp_path)])
+    digests = [kernel_cache.code_digest.__wrapped__()]
+    (tmp_path / "sub" / "model.py").write_text("y = 3\n")  # a file the kernel calls into
+    digests.append(kernel_cache.code_digest.__wrapped__())
+    (tmp_path / "sub" / "model.py").write_text("y = 3\n")
+    digests.append(kernel_cache.code_digest.__wrapped__())
+    assert digests[0] != digests[1] == digests[2]
