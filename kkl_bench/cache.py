@@ -3,8 +3,9 @@
 The cache directory is ``--cache DIR``, else ``$KKL_BENCH_CACHE``, else
 ``.kkl_bench_cache`` in the working directory. Estimators store content-keyed
 files under ``<cache>/<kind>/`` (see :mod:`kkl_bench.kkl.cache`), each with a
-``.sha256`` sidecar that is checked before loading; ``unrolled_kernels/`` holds the
-filters' generated kernels (:func:`import_generated`).
+``.sha256`` sidecar that is checked before loading; ``unrolled_kernels/`` and
+``bound_kernels/`` hold the filters' generated kernels (:func:`import_generated`,
+:mod:`kkl_bench.kernel_cache`).
 """
 
 from __future__ import annotations
