@@ -124,7 +124,7 @@ def _analyse(anomalies_y, precision_weights, innovation, anomalies, mean, out):
             out[i, s] = total
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit  # disk-cached once bound to a model: kernel_cache.bind
 def etkf(
     drift, output, sense, constrain, p, q, s, g, y, u, dt, sigma_w, r, inflation, near, taper,
     initial, noise, out,

@@ -253,7 +253,7 @@ def _huber_noise(R, residual, S, threshold, out):
             out[j, j, b] = R[j, j] / min(1.0, weight)
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit  # disk-cached once bound to a model: kernel_cache.bind
 def ekf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
     p, q, s, g, y, u, dt, x0, P0, Q, R, inflation, threshold, out,
@@ -394,7 +394,7 @@ def _stop_where(alive, ok):
         alive[b] = alive[b] and ok[b]
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit  # disk-cached once bound to a model: kernel_cache.bind
 def ukf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
     p, q, s, g, y, u, dt, x0, P0, Q, R, Wm, Wc, spread, inflation, threshold, out,

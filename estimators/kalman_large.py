@@ -116,7 +116,7 @@ def _step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stage_jacob
             )
 
 
-@numba.njit  # not cached: numba cannot cache a function of functions
+@numba.njit  # disk-cached once bound to a model: kernel_cache.bind
 def ekf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
     p, q, s, g, y, u, dt, x0, P0, Q, R, inflation, threshold, out,

@@ -183,7 +183,7 @@ def _proposal_log_density(sample, mean, gain, innovation, H, q, r, log_det_preci
     return 0.5 * (log_det_precision - quadratic - norm)
 
 
-@numba.njit(error_model="numpy")  # not cached: numba cannot cache a function of functions
+@numba.njit(error_model="numpy")  # disk-cached once bound to a model: kernel_cache.bind
 def propagate(
     drift, output, output_jacobian, sense, sense_slope, constrain, p, q_output, s, g,
     particles, log_weights, u, dt, y, present, q, components, proposing, law, constants,
