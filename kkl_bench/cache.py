@@ -10,7 +10,9 @@ files under ``<cache>/<kind>/`` (see :mod:`kkl_bench.kkl.cache`), each with a
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib
 import importlib.util
 import os
 import shutil
@@ -24,6 +26,25 @@ from types import ModuleType
 def default_cache_dir() -> Path:
     """``$KKL_BENCH_CACHE`` if set, else ``.kkl_bench_cache`` in the working directory."""
     return Path(os.environ.get("KKL_BENCH_CACHE", ".kkl_bench_cache"))
+
+
+@functools.cache
+def code_digest() -> str:
+    """A digest of every Python file of kkl_bench's packages (the core, its systems and
+    estimators): what the artifacts made from its code depend on (the bound kernels of
+    :mod:`kkl_bench.kernel_cache`, the figures ``publish`` keeps when their inputs are
+    unchanged)."""
+    digest = hashlib.sha256()
+    roots = {Path(path) for name in ("", ".systems", ".estimators") for path in _paths(name)}
+    for root in sorted(roots):
+        for path in sorted(root.rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _paths(subpackage: str) -> list[str]:
+    return list(importlib.import_module(f"kkl_bench{subpackage}").__path__)
 
 
 def checksum_path(path: Path) -> Path:

@@ -28,27 +28,10 @@ from pathlib import Path
 
 import numba
 
-from kkl_bench.cache import default_cache_dir, import_generated
+from kkl_bench.cache import code_digest, default_cache_dir, import_generated
 
 FOLDER = "bound_kernels"
 """The cache's folder of bound kernels (:func:`bind`)."""
-
-
-@functools.cache
-def code_digest() -> str:
-    """A digest of every Python file of kkl_bench's packages (the core, its systems and
-    estimators) and of numba's version: what a bound kernel's compiled code depends on."""
-    digest = hashlib.sha256(numba.__version__.encode())
-    roots = {Path(path) for name in ("", ".systems", ".estimators") for path in _paths(name)}
-    for root in sorted(roots):
-        for path in sorted(root.rglob("*.py")):
-            digest.update(path.relative_to(root).as_posix().encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
-
-
-def _paths(subpackage: str) -> list[str]:
-    return list(importlib.import_module(f"kkl_bench{subpackage}").__path__)
 
 
 def _global_name(function) -> str | None:
@@ -86,7 +69,7 @@ def _bound(kernel, functions: tuple) -> Callable:
     files = hashlib.sha256()
     for function in (kernel, *functions):  # a plugin's functions live outside the package
         files.update(Path(inspect.getfile(function.py_func)).read_bytes())
-    code = f"{code_digest()}-{files.hexdigest()[:16]}"
+    code = f"{code_digest()}-{files.hexdigest()[:16]}-numba{numba.__version__}"
     source = "\n".join(
         [
             f'"""{names[0]} bound to its model (kkl_bench.kernel_cache; code {code})."""',

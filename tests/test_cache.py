@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from kkl_bench import cache
 from kkl_bench.cache import cache_info, default_cache_dir
 from kkl_bench.cli import main
 from kkl_bench.kkl.cache import CheckpointCache
@@ -72,3 +73,16 @@ def test_invalid_jobs_exit_with_usage(jobs, capsys):
         main(["run", "--estimator", "ekf", "--jobs", jobs])
     assert exit_info.value.code == 2
     assert f"jobs must be a positive integer, got '{jobs}'" in capsys.readouterr().err
+
+
+def test_a_change_to_any_source_file_changes_the_code_digest(tmp_path, monkeypatch):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "kernels.py").write_text("x = 1\n")
+    (tmp_path / "sub" / "model.py").write_text("y = 2\n")
+    monkeypatch.setattr(cache, "_paths", lambda subpackage: [str(tmp_path)])
+    digests = [cache.code_digest.__wrapped__()]
+    (tmp_path / "sub" / "model.py").write_text("y = 3\n")  # any file of the package
+    digests.append(cache.code_digest.__wrapped__())
+    (tmp_path / "sub" / "model.py").write_text("y = 3\n")
+    digests.append(cache.code_digest.__wrapped__())
+    assert digests[0] != digests[1] == digests[2]

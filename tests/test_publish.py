@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from kkl_bench import figures
 from kkl_bench.cli import main
 from kkl_bench.estimator import Estimator
 from kkl_bench.harness import RunSpec, run
@@ -76,6 +77,24 @@ def test_publishing_twice_gives_byte_identical_files(results, published, tmp_pat
     assert [name for name in first if first[name] != second[name]] == []
     expected = {"README.md", "index.html", "quick.tex", "quick.csv", "quick-far-init.csv"}
     assert expected | {"figures/relative-rmse-far-init.svg"} <= {str(p) for p in first}
+
+
+def test_publishing_again_draws_only_the_figures_whose_inputs_or_files_changed(
+    results, published, tmp_path, monkeypatch
+):
+    """The same results into the same board: every figure is kept, but one edited by hand,
+    which is drawn again, byte for byte as it was (``tmp_path`` and ``published`` lie side
+    by side, so the copy names the same results folder)."""
+    shutil.copytree(published, tmp_path, dirs_exist_ok=True)
+    drawn, save = [], figures.save
+    monkeypatch.setattr(figures, "save", lambda figure, path: drawn.append(path.name) or save(figure, path))  # fmt: skip
+    arguments = ["publish", "--results", str(results), "--profile", "quick", "--out", str(tmp_path)]
+    assert main(arguments) == 0 and drawn == []
+    (tmp_path / "figures" / "relative-rmse.png").write_bytes(b"edited by hand")
+    assert main(arguments) == 0 and drawn == ["relative-rmse"]
+    first = {p.relative_to(published): p.read_bytes() for p in published.rglob("*") if p.is_file()}
+    again = {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert first == again
 
 
 def recorded(results: Path) -> dict[tuple[str, str, str, str], list[dict]]:

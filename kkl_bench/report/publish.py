@@ -9,16 +9,22 @@ Writes, for one profile:
   ``<profile>-<track>.tex`` / ``.csv`` for every other track;
 * ``figures/``: PNG (for the Markdown) and SVG (for the page);
 * ``publication.json``: the profile, the results folder and the files written, by
-  which later publications know what they may replace.
+  which later publications know what they may replace, and a digest of each figure's
+  inputs and files.
 
-Nothing is timed or dated here, so the same results give byte-identical files.
+Nothing is timed or dated here, so the same results give byte-identical files; a figure
+whose inputs (its data, this package's code, matplotlib's version) and files are those
+the previous publication recorded is kept, not drawn again (adding one row to a board
+redraws the few figures that show it).
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +32,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from kkl_bench import figures
+from kkl_bench.cache import code_digest
 from kkl_bench.cost import COST_FILE, read_costs, with_measured_costs
 from kkl_bench.leaderboard import render
 from kkl_bench.protocol.streams import PAPER_TRACK
@@ -103,7 +110,7 @@ def publish(
             "them); run `kkl-bench run` with --track paper"
         )
     link = Path(os.path.relpath(Path(results_dir).resolve(), Path(out).resolve())).as_posix()
-    previous = owned_files(out, profile, link, force)
+    previous, previous_figures = owned_files(out, profile, link, force)
     summary = summary_table(paper, with_paper=True, margin=margin)
     costs = read_costs(out / COST_FILE)
     if costs is not None:
@@ -111,7 +118,10 @@ def publish(
         summary = with_measured_costs(summary, costs)
     tables = TrackTables.of(results, margin)
     out.mkdir(parents=True, exist_ok=True)
-    figure_names = draw_figures(summary, results_dir, profile, out, tables.summaries)
+    figure_digests = draw_figures(
+        summary, results_dir, profile, out, tables.summaries, previous_figures
+    )
+    figure_names = list(figure_digests)
     board = Board(
         summary=summary,
         results=paper,
@@ -150,7 +160,7 @@ def publish(
     )
     for stale in sorted(set(previous) - set(files)):
         (out / stale).unlink(missing_ok=True)
-    manifest = {"profile": profile, "results": link, "files": files}
+    manifest = {"profile": profile, "results": link, "files": files, "figures": figure_digests}
     (out / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
     return [out / name for name in files]
 
@@ -163,16 +173,20 @@ def _is_smoke(profile: str) -> bool:
         return False
 
 
-def owned_files(out: Path, profile: str, link: str, force: bool) -> list[str]:
-    """The files (relative to ``out``) of the publication that ``out`` holds, after making
-    sure this one may replace it: one of ``profile`` from the results at ``link`` (relative
-    to ``out``). Raises :class:`PublishRefused` saying why, and what ``force`` would
-    replace, for a board of another profile or results folder, or for a folder with a
-    board no publication recorded."""
+def owned_files(
+    out: Path, profile: str, link: str, force: bool
+) -> tuple[list[str], dict[str, str]]:
+    """The files (relative to ``out``) of the publication that ``out`` holds and its
+    figures' digests (name -> digest, :func:`draw_figures`), after making sure this one may
+    replace it: one of ``profile`` from the results at ``link`` (relative to ``out``).
+    Raises :class:`PublishRefused` saying why, and what ``force`` would replace, for a
+    board of another profile or results folder, or for a folder with a board no
+    publication recorded."""
     manifest_path = out / MANIFEST
     if manifest_path.exists():
         manifest = json.loads(manifest_path.read_text())
         previous, reasons = list(manifest["files"]), []
+        figures_drawn = manifest.get("figures", {})
         if manifest["profile"] != profile:
             reasons.append(f"its board is of profile {manifest['profile']!r} (this is {profile!r})")
         if (out / manifest["results"]).resolve() != (out / link).resolve():
@@ -182,7 +196,7 @@ def owned_files(out: Path, profile: str, link: str, force: bool) -> list[str]:
             )
     else:
         previous = [name for name in ("README.md", "index.html") if (out / name).exists()]
-        reasons = []
+        reasons, figures_drawn = [], {}
         if previous:
             reasons.append(
                 f"its {', '.join(previous)} were not written by `kkl-bench publish` (it has "
@@ -197,7 +211,7 @@ def owned_files(out: Path, profile: str, link: str, force: bool) -> list[str]:
             f"Publish to a new folder (--out), or pass --force to replace its {len(previous)} "
             f"published file(s) ({shown})"
         )
-    return previous
+    return previous, figures_drawn
 
 
 def draw_figures(
@@ -206,15 +220,17 @@ def draw_figures(
     profile: str,
     out: Path,
     tracks: dict[str, pd.DataFrame] | None = None,
-) -> list[str]:
+    drawn: dict[str, str] | None = None,
+) -> dict[str, str]:
     """Draw every figure into ``out/figures`` (PNG and SVG), with a progress bar; returns
-    their names.
+    each figure's name -> digest (:func:`figure_digest`), in drawing order.
 
-    ``summary`` is the paper track's; each of ``tracks`` (name -> summary) gets
-    its own heat map.
+    ``summary`` is the paper track's; each of ``tracks`` (name -> summary) gets its own
+    heat map. A figure whose digest is that of ``drawn`` (the previous publication's) is
+    kept as it is.
     """
     kept = kept_estimates(results_dir, profile)
-    drawings = [("relative-rmse", lambda: figures.relative_rmse_heatmap(summary))]
+    drawings = [("relative-rmse", functools.partial(figures.relative_rmse_heatmap, summary))]
     for name, of_track in (tracks or {}).items():
         drawings.append(
             (
@@ -224,7 +240,7 @@ def draw_figures(
         )
         if settles(name):  # where the first test trajectory starts matters: draw it
             drawings += _track_trajectories(name, results_dir, profile)
-    drawings.append(("cost-accuracy", lambda: figures.cost_accuracy_figure(summary)))
+    drawings.append(("cost-accuracy", functools.partial(figures.cost_accuracy_figure, summary)))
     for system in SYSTEM_TITLES:
         for regime in REGIME_TITLES:
             cell = {e: k for (e, s, r), k in kept.items() if (s, r) == (system, regime)}
@@ -236,10 +252,37 @@ def draw_figures(
                         functools.partial(figures.trajectory_figure, title, cell),
                     )
                 )
-    directory = out / "figures"
+    directory, digests = out / "figures", {}
     for name, draw in tqdm(drawings, desc="drawing figures", unit="figure", disable=None):
-        figures.save(draw(), directory / name)
-    return [name for name, _ in drawings]
+        inputs = _inputs_digest(draw)
+        digests[name] = figure_digest(inputs, directory / name)
+        if digests[name] != (drawn or {}).get(name):
+            figures.save(draw(), directory / name)
+            digests[name] = figure_digest(inputs, directory / name)
+    return digests
+
+
+def figure_digest(inputs: str, path_without_suffix: Path) -> str:
+    """``<inputs>-<files>``: the digest of a figure's inputs and of its PNG and SVG files
+    as they are now (``missing`` for a file that is not there)."""
+    files = hashlib.sha256()
+    for suffix in (".png", ".svg"):
+        path = path_without_suffix.with_suffix(suffix)
+        files.update(path.read_bytes() if path.is_file() else b"missing")
+    return f"{inputs}-{files.hexdigest()[:16]}"
+
+
+def _inputs_digest(draw: functools.partial) -> str:
+    """A digest of what ``draw`` draws from: its function and arguments, this package's
+    code and matplotlib's version. Pickling the same data twice gives the same bytes; where
+    it would not, the figure is only drawn again."""
+    import matplotlib
+
+    digest = hashlib.sha256(f"{code_digest()}-matplotlib{matplotlib.__version__}".encode())
+    function = draw.func
+    payload = (function.__module__, function.__qualname__, draw.args, draw.keywords)
+    digest.update(pickle.dumps(payload, protocol=5))
+    return digest.hexdigest()[:16]
 
 
 def _track_trajectories(track: str, results_dir: Path, profile: str) -> list[tuple[str, Any]]:
