@@ -7,6 +7,24 @@ from kkl_bench.executors import threads_per_worker
 from kkl_bench.registry import estimators
 
 
+def pytest_addoption(parser):
+    parser.addoption(
+        "--exhaustive",
+        action="store_true",
+        help="also run the tests marked exhaustive (the same checks on more systems and cells)",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``exhaustive`` are skipped unless ``--exhaustive`` is given."""
+    if config.getoption("--exhaustive"):
+        return
+    skip = pytest.mark.skip(reason="exhaustive: run with --exhaustive")
+    for item in items:
+        if "exhaustive" in item.keywords:
+            item.add_marker(skip)
+
+
 def pytest_configure(config):
     """Under pytest-xdist (``-n``), each worker and the commands it starts get an equal
     share of the cores, instead of every worker's torch and BLAS taking all of them."""

@@ -25,6 +25,9 @@ NEW_SYSTEMS = [
 LARGE = ("lorenz96-n80", "lorenz96-n160")
 """Too slow for the default run's conformance kit (the UKF's 321 sigma points at n = 160);
 they are Lorenz-96 like the smaller sizes, which it covers."""
+KIT_ONLY_WITH_EXHAUSTIVE = ("lorenz96-n10", "lorenz96-n40")
+"""Lorenz-96 sizes whose filters' kit runs with ``--exhaustive``: n = 5 takes the generic
+kernels and n = 20 the large-system EKF, the code paths these sizes take too."""
 
 
 @pytest.mark.parametrize("name", NEW_SYSTEMS)
@@ -96,7 +99,14 @@ def test_each_output_drives_its_own_latent_modes():
 
 
 @pytest.mark.parametrize("estimator", ["ekf", "ukf"])
-@pytest.mark.parametrize("name", [name for name in NEW_SYSTEMS if name not in LARGE])
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(name, marks=pytest.mark.exhaustive if name in KIT_ONLY_WITH_EXHAUSTIVE else ())
+        for name in NEW_SYSTEMS
+        if name not in LARGE
+    ],
+)
 def test_filters_pass_the_conformance_kit(estimator, name):
     check_estimator(estimator, name)
 
