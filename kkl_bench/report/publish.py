@@ -229,6 +229,7 @@ def draw_figures(
     heat map. A figure whose digest is that of ``drawn`` (the previous publication's) is
     kept as it is.
     """
+    drawn = drawn or {}
     kept = kept_estimates(results_dir, profile)
     drawings = [("relative-rmse", functools.partial(figures.relative_rmse_heatmap, summary))]
     for name, of_track in (tracks or {}).items():
@@ -256,7 +257,7 @@ def draw_figures(
     for name, draw in tqdm(drawings, desc="drawing figures", unit="figure", disable=None):
         inputs = _inputs_digest(draw)
         digests[name] = figure_digest(inputs, directory / name)
-        if digests[name] != (drawn or {}).get(name):
+        if digests[name] != drawn.get(name):
             figures.save(draw(), directory / name)
             digests[name] = figure_digest(inputs, directory / name)
     return digests
