@@ -110,8 +110,15 @@ def relative_ratios(
     summary: pd.DataFrame,
 ) -> tuple[list[str], list[tuple[str, str]], np.ndarray]:
     """The estimators, the (system, regime) cells and ``(estimators, cells)`` ratios of each
-    estimator's mean RMSE to the UKF's (NaN where either is missing or the UKF diverged)."""
+    estimator's mean RMSE to the UKF's (NaN where either is missing or the UKF diverged; the
+    UKF's own entry inf where it diverged, so that the figure says why its column is empty).
+    A row whose every cell is ``unsupported`` (the tables give its reason) is left out."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    if "status" in ours:
+        supported = ours.groupby("estimator")["status"].transform(
+            lambda s: (s != "unsupported").any()
+        )
+        ours = ours[supported]
     regimes = task_order(ours)
     systems = [s for s in SYSTEM_TITLES if s in set(ours["system"])]
     systems += sorted(set(ours["system"]) - set(systems))
@@ -124,9 +131,11 @@ def relative_ratios(
     for i, name in enumerate(names):
         for j, (system, regime) in enumerate(cells):
             if (name, system, regime) in table.index and (REFERENCE, system, regime) in table.index:
-                ratios[i, j] = over_reference(
-                    table[name, system, regime], table[REFERENCE, system, regime]
-                )
+                reference = table[REFERENCE, system, regime]
+                if name == REFERENCE:
+                    ratios[i, j] = 1.0 if np.isfinite(reference) else math.inf
+                else:
+                    ratios[i, j] = over_reference(table[name, system, regime], reference)
     return names, cells, ratios
 
 

@@ -10,7 +10,9 @@ regime) pairs grouped two systems per table as in the paper's Tables 1-2. A
 cell reads ``RMSE ± std (SMAPE %)``: for each training seed the mean over the
 test trajectories, then the mean of those over the seeds, ``±`` their
 standard deviation over the seeds (absent for one seed). The ``Seeds`` column
-says how many. Marks come from :mod:`kkl_bench.significance`: **bold** where
+says how many; ``Converged``, whether the trainings behind the row's cells of the
+table converged (protocol section 6.5, the worst verdict of
+:func:`~kkl_bench.convergence.worst`; empty for rows that do not train). Marks come from :mod:`kkl_bench.significance`: **bold** where
 the lowest RMSE beats every other entry of its column, *italic* for the
 entries tied with the lowest. A cell where some trajectory diverged reads
 ``diverged (k/n), median m`` (over all seeds, with the median RMSE of all its
@@ -78,6 +80,15 @@ def _seeds(rows: pd.DataFrame) -> str:
     return str(low) if low == high else f"{low}-{high}"
 
 
+def _verdicts(summary: pd.DataFrame, systems: Sequence[str]) -> dict[str, str] | None:
+    """Per estimator, the worst convergence verdict of its cells on ``systems``; None when
+    no row of ``summary`` trains (or it records no verdicts)."""
+    if "converged" not in summary or not (summary["converged"] != convergence.UNTRAINED).any():
+        return None
+    shown = summary[summary["system"].isin(systems)]
+    return shown.groupby("estimator")["converged"].agg(convergence.worst).to_dict()
+
+
 def _format_settling(row: pd.Series) -> str:
     """Median settling time in s, with how many trajectories never settled."""
     if row["status"] != "ok" or not math.isfinite(row["settling_median_s"]):
@@ -102,12 +113,17 @@ def _grid(
     labels. A row is labelled by :func:`~kkl_bench.families.shown_name` (the limit as such).
 
     With ``settling``, every RMSE column is followed by a settling-time column. A row with
-    no cell in the table is left out.
+    no cell in the table is left out. The ``Converged`` column is there when some row of
+    ``summary`` trains.
     """
     estimators = list(dict.fromkeys(summary["estimator"]))
     shown = families.shown_names(summary)
     indexed = summary.set_index(["estimator", "system", "regime"])
+    verdicts = _verdicts(summary, systems)
     header, cells = ["Estimator", "Seeds"], [None, None]
+    if verdicts is not None:
+        header.append("Converged")
+        cells.append(None)
     for system in systems:
         for regime in regimes:
             header.append(
@@ -123,6 +139,8 @@ def _grid(
             continue  # no cell in this table (a row run on other systems only)
         own = summary[summary["estimator"] == estimator]
         row = [escape(shown[estimator]), _seeds(own)]
+        if verdicts is not None:
+            row.append(verdicts.get(estimator, convergence.UNTRAINED))
         for system in systems:
             for regime in regimes:
                 key = (estimator, system, regime)

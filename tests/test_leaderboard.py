@@ -228,6 +228,31 @@ def test_track_summary_by_condition_groups_the_tasks_that_change_the_same_thing(
     assert re.search(r"\| a\+logged +\| 0\.5x \(median 0\.5x\) +\| - +\|", text)
 
 
+def test_the_converged_column_gives_each_rows_worst_verdict_over_the_tables_systems():
+    falling = {
+        "spent": {"phase": {"steps": 8}},
+        "log": {"validation_curve": [[0, 2], [4, 1], [8, 0.5]]},
+    }
+    flat = {"spent": {"phase": {"steps": 8}}, "log": {"validation_curve": [[0, 2], [4, 1], [8, 1]]}}
+    frame = results_frame((("learned", [0.1, 0.3]), ("filter", [0.2, 0.2])))
+    learned = frame["estimator"] == "learned"
+    frame["fit_report"] = [
+        (falling if system == "duffing" else flat) if is_learned else {}
+        for system, is_learned in zip(frame["system"], learned, strict=True)
+    ]
+    summary = summary_table(frame)
+    both = render(summary, "markdown")
+    assert both.splitlines()[0].split("|")[3].strip() == "Converged"
+    assert row_of(both, "learned").split("|")[3].strip() == "no"  # Duffing's curve still fell
+    assert row_of(both, "filter").split("|")[3].strip() == ""  # trains nothing
+    one_per_table = render(summary, "markdown", systems_per_table=1)
+    duffing, vdp = one_per_table.split("\n\n")[:2]
+    assert row_of(duffing, "learned").split("|")[3].strip() == "no"
+    assert row_of(vdp, "learned").split("|")[3].strip() == "yes"
+    untrained = render(summary_table(frame.drop(columns="fit_report")), "markdown")
+    assert "Converged" not in untrained
+
+
 def test_settling_columns_follow_each_rmse_column():
     frame = results_frame((("a", [0.1, 0.3, 0.2]), ("b", [0.2, 0.2, 0.2]))).assign(
         track="far-init",

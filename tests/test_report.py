@@ -91,18 +91,20 @@ def test_a_section_added_to_the_board_reaches_the_readme_and_the_page(monkeypatc
     assert "<h2>A new table</h2>" in page and '<td class="num" data-value="42.0">42</td>' in page
 
 
-def test_no_ratio_is_drawn_against_a_diverged_ukf():
+def test_no_ratio_is_drawn_against_a_diverged_ukf_and_rows_that_run_nowhere_are_left_out():
     from kkl_bench.figures import relative_ratios
 
     summary = pd.DataFrame(
         {
-            "estimator": ["ukf", "ekf", "ukf", "ekf"],
-            "system": ["duffing"] * 4,
-            "regime": ["zero", "zero", "square", "square"],
-            "rmse_mean": [math.inf, 0.2, 0.1, 0.3],
-            "track": ["paper"] * 4,
+            "estimator": ["ukf", "ekf", "ukf", "ekf", "ring", "ring"],
+            "system": ["duffing"] * 6,
+            "regime": ["zero", "zero", "square", "square", "zero", "square"],
+            "rmse_mean": [math.inf, 0.2, 0.1, 0.3, math.nan, math.nan],
+            "status": ["ok"] * 4 + ["unsupported"] * 2,
+            "track": ["paper"] * 6,
         }
     )
     names, cells, ratios = relative_ratios(summary)
     assert names == ["ekf", "ukf"] and cells == [("duffing", "zero"), ("duffing", "square")]
     assert math.isnan(ratios[0, 0]) and ratios[0, 1] == pytest.approx(3.0)
+    assert math.isinf(ratios[1, 0]) and ratios[1, 1] == 1.0  # the UKF's own cell: "div."
