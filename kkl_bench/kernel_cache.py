@@ -12,8 +12,9 @@ next process loads the machine code instead. The kernel is the same, so are its
 estimates.
 
 numba's cache of a function checks the function's own file, not the code it calls, so
-the module's source carries a digest of this package's code, of the files that define
-the bound functions (a plugin's system) and of numba's version: a change to any is a new
+the module's source carries a digest of this package's code, of the packages that define
+the bound functions (a plugin's system, every Python file of its top-level package: the
+helpers its functions call included) and of numba's version: a change to any is a new
 module, compiled afresh.
 """
 
@@ -54,6 +55,24 @@ def bind(kernel, *functions) -> Callable:
     return _bound(kernel, functions)
 
 
+def defining_code_digest(names: list[str]) -> str:
+    """A digest of the code behind the functions named ``module.qualname``, outside this
+    package (which :func:`~kkl_bench.cache.code_digest` covers): every Python file of each
+    one's top-level package, or its module's file where it is a lone module."""
+    digest = hashlib.sha256()
+    for package in sorted({name.partition(".")[0] for name in names} - {"kkl_bench"}):
+        module = importlib.import_module(package)
+        roots = [Path(path) for path in getattr(module, "__path__", [])]
+        files = {(root, path) for root in roots for path in root.rglob("*.py")}
+        if not roots:
+            path = Path(inspect.getfile(module))
+            files = {(path.parent, path)}
+        for root, path in sorted(files):
+            digest.update(f"{package}/{path.relative_to(root).as_posix()}".encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 @functools.cache
 def _bound(kernel, functions: tuple) -> Callable:
     names = [_global_name(function) for function in (kernel, *functions)]
@@ -66,10 +85,7 @@ def _bound(kernel, functions: tuple) -> Callable:
         for key, value in sorted(kernel.targetoptions.items())
         if key in ("error_model", "fastmath")
     )
-    files = hashlib.sha256()
-    for function in (kernel, *functions):  # a plugin's functions live outside the package
-        files.update(Path(inspect.getfile(function.py_func)).read_bytes())
-    code = f"{code_digest()}-{files.hexdigest()[:16]}-numba{numba.__version__}"
+    code = f"{code_digest()}-{defining_code_digest(names)}-numba{numba.__version__}"
     source = "\n".join(
         [
             f'"""{names[0]} bound to its model (kkl_bench.kernel_cache; code {code})."""',

@@ -76,3 +76,21 @@ def test_a_function_that_cannot_be_imported_by_name_is_bound_in_python(cache):
     compiled.rk4_step(drift, np.zeros(0), np.zeros(2), x, u, dt, expected, work)
     np.testing.assert_array_equal(out, expected)
     assert not (cache / kernel_cache.FOLDER).exists()
+
+
+def test_a_change_anywhere_in_a_plugins_package_is_new_code(tmp_path, monkeypatch):
+    """numba's cache checks only the file of a function, not the helpers it calls: the
+    bound kernel's digest covers the whole package that defines the function."""
+    package = tmp_path / "site" / "my_plugin"
+    (package / "models").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "models" / "__init__.py").write_text("")
+    (package / "models" / "drift.py").write_text("from my_plugin.helpers import gain\n")
+    (package / "helpers.py").write_text("gain = 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    names = ["kkl_bench.protocol.compiled.rk4_step", "my_plugin.models.drift.drift"]
+    before = kernel_cache.defining_code_digest(names)
+    assert kernel_cache.defining_code_digest(names) == before
+    assert kernel_cache.defining_code_digest(names[:1]) != before  # the package alone
+    (package / "helpers.py").write_text("gain = 2.0\n")  # a helper, not the function's file
+    assert kernel_cache.defining_code_digest(names) != before
