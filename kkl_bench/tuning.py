@@ -34,7 +34,8 @@ def validation_error(x_hat: np.ndarray, x: np.ndarray) -> float:
     """RMSE of ``x_hat`` against ``x`` (both ``(batch, steps, n_x)``) over the scored window;
     infinite if it is not finite (a candidate that loses a trajectory never wins)."""
     start = steady_state_start(x.shape[1])
-    error = float(np.sqrt(np.mean((x_hat[:, start:] - x[:, start:]) ** 2)))
+    with np.errstate(over="ignore", invalid="ignore"):  # a diverged candidate: inf or nan
+        error = float(np.sqrt(np.mean((x_hat[:, start:] - x[:, start:]) ** 2)))
     return error if np.isfinite(error) else float("inf")
 
 
