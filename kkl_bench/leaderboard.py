@@ -83,8 +83,10 @@ def _seeds(rows: pd.DataFrame) -> str:
 def _verdicts(summary: pd.DataFrame, systems: Sequence[str]) -> dict[str, str] | None:
     """Per estimator, the worst convergence verdict of its cells on ``systems``; None when
     no row of ``summary`` trains (or it records no verdicts)."""
-    if "converged" not in summary or not (summary["converged"] != convergence.UNTRAINED).any():
+    if "converged" not in summary:
         return None
+    if not (summary["converged"].fillna(convergence.UNTRAINED) != convergence.UNTRAINED).any():
+        return None  # only rows that do not train (the paper's rows record no verdict)
     shown = summary[summary["system"].isin(systems)]
     return shown.groupby("estimator")["converged"].agg(convergence.worst).to_dict()
 

@@ -249,8 +249,12 @@ def test_the_converged_column_gives_each_rows_worst_verdict_over_the_tables_syst
     duffing, vdp = one_per_table.split("\n\n")[:2]
     assert row_of(duffing, "learned").split("|")[3].strip() == "no"
     assert row_of(vdp, "learned").split("|")[3].strip() == "yes"
-    untrained = render(summary_table(frame.drop(columns="fit_report")), "markdown")
-    assert "Converged" not in untrained
+    untrained = summary_table(frame.drop(columns="fit_report"))
+    assert "Converged" not in render(untrained, "markdown")
+    with_paper = pd.concat(
+        [untrained, pd.DataFrame([{"estimator": "paper: x", "converged": None}])]
+    )
+    assert "Converged" not in render(with_paper.iloc[[0, -1]], "markdown")
 
 
 def test_settling_columns_follow_each_rmse_column():
