@@ -61,8 +61,8 @@ def test_cells_made_from_uncommitted_code_are_listed():
     )
     dirty = dirty_cells(results)
     assert dirty.values.tolist() == [
-        ["`kkl` vdp paper sinusoid seed 0", "c1-dirty", ""],
-        ["`kkl` vdp paper sinusoid seed 1", "", "t1-dirty"],
+        ["`kkl` vdp paper sinusoid seed 0", "c1-dirty", "", ""],
+        ["`kkl` vdp paper sinusoid seed 1", "", "t1-dirty", ""],
     ]
     assert dirty_sentence(dirty, 3).startswith(
         "2 of the 3 cells were made by code with uncommitted changes (a commit ending "
@@ -71,3 +71,26 @@ def test_cells_made_from_uncommitted_code_are_listed():
     assert dirty_sentence(dirty.iloc[:0], 3) == (
         "Every one of the 3 cells was scored, and its model trained, from a committed tree."
     )
+
+
+def test_a_dirty_cell_re_derived_at_a_committed_tree_says_so():
+    results = pd.DataFrame(
+        [cell("kkl", "c1-dirty", ["t1"]), cell("kkl", "c2-dirty", ["t1"], seed=1)]
+    )
+    verifications = pd.DataFrame(
+        [  # the record of seed 0 as published, at a clean and then a dirty tree
+            ("r1", "kkl/vdp/sinusoid-seed0.json", "c1-dirty", "v1", "within tolerance"),
+            ("r2", "kkl/vdp/sinusoid-seed0.json", "c1-dirty", "v2", "identical"),
+            ("r3", "kkl/vdp/sinusoid-seed0.json", "c1-dirty", "v3-dirty", "drifted"),
+            # seed 1 verified when it held another record (published at c0)
+            ("r2", "kkl/vdp/sinusoid-seed1.json", "c0", "v2", "identical"),
+        ],
+        columns=["run", "cell", "published_commit", "verified_commit", "verdict"],
+    )
+    dirty = dirty_cells(results, verifications)
+    assert dirty["verified"].tolist() == ["identical", ""]
+    assert (
+        "; 1 of them re-derived since by `kkl-bench verify` at a committed tree: 1 identical, "
+        in (dirty_sentence(dirty, 2))
+    )
+    assert "re-derived since" not in dirty_sentence(dirty_cells(results), 2)

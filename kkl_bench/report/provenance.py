@@ -9,7 +9,15 @@ from kkl_bench.convergence import trained
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report.board import Board
 from kkl_bench.report.model import HTML, Section, Table, Text
-from kkl_bench.verification import VERDICT_COLUMNS, latest_run, verification_sentence
+from kkl_bench.results import cell_path
+from kkl_bench.verification import (
+    DRIFTED,
+    IDENTICAL,
+    VERDICT_COLUMNS,
+    WITHIN,
+    latest_run,
+    verification_sentence,
+)
 
 NOT_RECORDED = "not recorded"
 """What the Reproduce table says of cells written before runs recorded their command line."""
@@ -53,24 +61,48 @@ def _trained_by(reports) -> str:
     return "; ".join(parts)
 
 
-def dirty_cells(results: pd.DataFrame) -> pd.DataFrame:
+def dirty_cells(results: pd.DataFrame, verifications: pd.DataFrame | None = None) -> pd.DataFrame:
     """The cells made by code with uncommitted changes: scored, or whose model was trained,
     from a ``-dirty`` checkout. Columns ``cell`` (row, system, track, task, seed),
-    ``scored`` and ``trained`` (the dirty commits, empty where that step was clean)."""
+    ``scored`` and ``trained`` (the dirty commits, empty where that step was clean) and
+    ``verified``: the latest verdict of ``verifications`` (the rows of
+    ``verification.csv``) that re-derived this very record at a committed tree, empty if
+    none did."""
+    verdicts = _clean_verdicts(verifications)
     rows = []
     for _, cell in results.iterrows():
         scored = str(cell["provenance"].get("git_commit"))
         trained = sorted(c for c in training_commits(cell.get("fit_report")) if c.endswith(DIRTY))
         if scored.endswith(DIRTY) or trained:
+            key = cell_path(
+                "",
+                cell["estimator"],
+                cell["system"],
+                cell["regime"],
+                "",
+                cell["seed"],
+                cell["track"],
+            )
             rows.append(
                 {
                     "cell": f"`{cell['estimator']}` {cell['system']} {cell['track']} "
                     f"{cell['regime']} seed {cell['seed']}",
                     "scored": scored if scored.endswith(DIRTY) else "",
                     "trained": ", ".join(trained),
+                    "verified": verdicts.get((key.as_posix(), scored), ""),
                 }
             )
-    return pd.DataFrame(rows, columns=["cell", "scored", "trained"])
+    return pd.DataFrame(rows, columns=["cell", "scored", "trained", "verified"])
+
+
+def _clean_verdicts(verifications: pd.DataFrame | None) -> dict[tuple[str, str], str]:
+    """``(cell path, published commit) -> verdict`` of the latest verification of each
+    record made at a committed tree."""
+    if verifications is None or verifications.empty:
+        return {}
+    clean = verifications[~verifications["verified_commit"].astype(str).str.endswith(DIRTY)]
+    latest = clean.sort_values("run").groupby(["cell", "published_commit"])["verdict"].last()
+    return {(str(cell), str(commit)): verdict for (cell, commit), verdict in latest.items()}
 
 
 def dirty_sentence(dirty: pd.DataFrame, total: int) -> str:
@@ -79,11 +111,20 @@ def dirty_sentence(dirty: pd.DataFrame, total: int) -> str:
         return f"Every one of the {total} cells was scored, and its model trained, from a committed tree."
     scored = int((dirty["scored"] != "").sum())
     trained = int((dirty["trained"] != "").sum())
+    verified = dirty.get("verified", pd.Series(dtype=str))
+    counts = verified[verified != ""].value_counts()
+    re_derived = (
+        f"; {int(counts.sum())} of them re-derived since by `kkl-bench verify` at a committed "
+        f"tree: {counts.get(IDENTICAL, 0)} identical, {counts.get(WITHIN, 0)} within "
+        f"its tolerance, {counts.get(DRIFTED, 0)} drifted"
+        if not counts.empty
+        else ""
+    )
     return (
         f"{len(dirty)} of the {total} cells were made by code with uncommitted changes "
         f"(a commit ending `{DIRTY}`): {scored} scored and {trained} trained from such a "
         "tree; their numbers cannot be re-derived from a commit alone (`kkl-bench verify` "
-        "re-derives them from the current one). Per row (each cell on the page):"
+        f"re-derives them from the current one){re_derived}. Per row (each cell on the page):"
     )
 
 
@@ -158,20 +199,35 @@ def provenance_sections(board: Board) -> list[Section]:
     ]
     versions = pd.DataFrame(facts, columns=["what", "value"])
     cells = board.every_cell if board.every_cell is not None else board.results
-    dirty = dirty_cells(cells)
+    dirty = dirty_cells(cells, board.verifications)
     listed = [Text(dirty_sentence(dirty, len(cells)))]
     if not dirty.empty:
         per_row = (
-            dirty.assign(row=dirty["cell"].str.split(" ").str[0])
+            dirty.assign(
+                row=dirty["cell"].str.split(" ").str[0],
+                reproduced=dirty["verified"].isin([IDENTICAL, WITHIN]),
+            )
             .groupby(["row", "scored", "trained"], sort=False)
-            .size()
-            .reset_index(name="cells")
+            .agg(cells=("cell", "size"), reproduced=("reproduced", "sum"))
+            .reset_index()
         )
         columns = {"scored": "Scored at", "trained": "Trained at"}
-        listed.append(Table(per_row, {"row": "Row", **columns, "cells": "Cells"}, id="dirty-rows"))
+        listed.append(
+            Table(
+                per_row,
+                {"row": "Row", **columns, "cells": "Cells", "reproduced": "Re-derived at a commit"},
+                id="dirty-rows",
+            )
+        )
         folded = f"Every cell made from uncommitted code ({len(dirty)} rows)"
         listed.append(
-            Table(dirty, {"cell": "Cell", **columns}, id="dirty-cells", folded=folded, only=HTML)
+            Table(
+                dirty,
+                {"cell": "Cell", **columns, "verified": "Verified"},
+                id="dirty-cells",
+                folded=folded,
+                only=HTML,
+            )
         )
     checked = [Text(verification_sentence(board.verifications))]
     if board.verifications is not None and not board.verifications.empty:
