@@ -12,7 +12,8 @@ test trajectories, then the mean of those over the seeds, ``±`` their
 standard deviation over the seeds (absent for one seed). The ``Seeds`` column
 says how many; ``Converged``, whether the trainings behind the row's cells of the
 table converged (protocol section 6.5, the worst verdict of
-:func:`~kkl_bench.convergence.worst`; empty for rows that do not train). Marks come from :mod:`kkl_bench.significance`: **bold** where
+:func:`~kkl_bench.convergence.worst`; empty for rows that do not train). Marks
+come from :mod:`kkl_bench.significance`: **bold** where
 the lowest RMSE beats every other entry of its column, *italic* for the
 entries tied with the lowest. A cell where some trajectory diverged reads
 ``diverged (k/n), median m`` (over all seeds, with the median RMSE of all its
