@@ -115,10 +115,7 @@ def relative_ratios(
     A row whose every cell is ``unsupported`` (the tables give its reason) is left out."""
     ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
     if "status" in ours:
-        supported = ours.groupby("estimator")["status"].transform(
-            lambda s: (s != "unsupported").any()
-        )
-        ours = ours[supported]
+        ours = ours[ours["estimator"].isin(ours.loc[ours["status"] != "unsupported", "estimator"])]
     regimes = task_order(ours)
     systems = [s for s in SYSTEM_TITLES if s in set(ours["system"])]
     systems += sorted(set(ours["system"]) - set(systems))

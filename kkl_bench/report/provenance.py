@@ -111,8 +111,7 @@ def dirty_sentence(dirty: pd.DataFrame, total: int) -> str:
         return f"Every one of the {total} cells was scored, and its model trained, from a committed tree."
     scored = int((dirty["scored"] != "").sum())
     trained = int((dirty["trained"] != "").sum())
-    verified = dirty.get("verified", pd.Series(dtype=str))
-    counts = verified[verified != ""].value_counts()
+    counts = dirty.loc[dirty["verified"] != "", "verified"].value_counts()
     re_derived = (
         f"; {int(counts.sum())} of them re-derived since by `kkl-bench verify` at a committed "
         f"tree: {counts.get(IDENTICAL, 0)} identical, {counts.get(WITHIN, 0)} within "
