@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
-from kkl_bench.estimators import kalman_kernels, kalman_unrolled
+from kkl_bench.estimators import kalman_kernels, kalman_large, kalman_unrolled
 from kkl_bench.estimators.kalman import KalmanBaseline, huber_noise
 
 from kkl_bench.kernel_cache import bind
@@ -107,7 +107,8 @@ class UnscentedKalman(KalmanBaseline):
                 lambda_ + model.n_x, settings["inflation"], settings["threshold"], out,
             )  # fmt: skip
             return
-        bind(kalman_kernels.ukf, *model.functions)(
+        kernel = kalman_large.ukf if kalman_large.takes(model) else kalman_kernels.ukf
+        bind(kernel, *model.functions)(
             model.p, model.q, model.s, model.g, y, u, dt, mean, covariance,
             Q, self.R_, points.Wm, points.Wc, lambda_ + model.n_x, settings["inflation"],
             settings["threshold"], out,

@@ -15,6 +15,9 @@ which both engines diverge (a non-finite estimate: the same score, ``inf``) agre
 
 import numpy as np
 import pytest
+from filterpy.kalman import MerweScaledSigmaPoints
+from kkl_bench.estimators import kalman_kernels, kalman_large
+from kkl_bench.systems.lorenz96 import lorenz96
 
 from kkl_bench import variants
 from kkl_bench.protocol.metrics import diverged
@@ -139,13 +142,17 @@ def test_the_compiled_engine_equals_filterpy_on_every_quick_cell(name, track, sy
 
 
 @pytest.mark.parametrize("n", [20, pytest.param(40, marks=pytest.mark.slow)])
-def test_the_large_system_ekf_equals_filterpy_on_lorenz96(n, tmp_path):
-    """The EKF of systems beyond the interleaved kernels' (``kalman_large``: one trajectory
-    at a time, sparse factors by their nonzeros, the update on BLAS)."""
+@pytest.mark.parametrize("name", ["ekf", "ukf"])
+def test_the_large_system_filters_equal_filterpy_on_lorenz96(name, n, tmp_path):
+    """The EKF and the UKF of systems beyond the interleaved kernels' (``kalman_large``: one
+    trajectory at a time, the EKF's sparse factors by their nonzeros, the UKF's sigma points
+    as the columns the model sweeps, the sums and the update on BLAS)."""
     systems = (f"lorenz96-n{n}",)
     spec = spec_for(("more-systems",), tmp_path=tmp_path, systems=systems, regimes=("sinusoid",))
-    compared, sensitive = compare_engines(spec, "ekf", spec.tasks(), spec.profile.n_test)
-    print(f"ekf on Lorenz-96, n = {n}: {sensitive} of {compared} trajectories rounding-sensitive")
+    compared, sensitive = compare_engines(spec, name, spec.tasks(), spec.profile.n_test)
+    print(
+        f"{name} on Lorenz-96, n = {n}: {sensitive} of {compared} trajectories rounding-sensitive"
+    )
     assert compared > 0 and sensitive < compared
 
 
@@ -157,6 +164,41 @@ def test_the_compiled_engine_equals_filterpy_on_sampled_standard_cells(name, tmp
     sample = [tasks[i] for i in np.random.default_rng(41).choice(len(tasks), 2, replace=False)]
     compared, sensitive = compare_engines(spec, name, sample, spec.profile.n_test)
     print(f"{name}: {sensitive} of {compared} trajectories rounding-sensitive")
+
+
+@pytest.mark.parametrize(("inflation", "threshold"), [(1.0, np.inf), (1.5, 2.0)])
+def test_the_large_system_ukf_stops_where_the_batch_last_kernel_does(inflation, threshold):
+    """The two UKF kernels, straight on Lorenz-96 (n = 20), through what the task streams
+    hold: samples without a measurement (a prediction only), measurements of 1e300 (the
+    estimate runs away until the covariance has no square root: the trajectory stops), a
+    prior whose square root does not exist (nothing recorded), with and without inflation
+    and Huber's update."""
+    model = lorenz96(20)().compiled()
+    steps, n = 60, model.n_x
+    y = 8.0 + np.random.default_rng(3).standard_normal((3, steps, model.n_y))
+    y[1, ::3] = np.nan  # every third sample missing
+    y[2, 30:] = 1e300
+    u = np.repeat(np.sin(0.05 * np.arange(steps))[None], 3, axis=0)
+    points = MerweScaledSigmaPoints(n, alpha=0.5, beta=2.0, kappa=0.0)
+    spread = points.alpha**2 * n
+
+    def run(kernel, P0):
+        out = np.full((3, steps, n), np.nan)
+        kernel(
+            *model.functions, model.p, model.q, model.s, model.g, y, u, 0.01, np.full(n, 8.0),
+            P0, 1e-4 * np.eye(n), 0.01 * np.eye(model.n_y), points.Wm, points.Wc, spread,
+            inflation, threshold, out,
+        )  # fmt: skip
+        return out
+
+    generic, large = run(kalman_kernels.ukf, np.eye(n)), run(kalman_large.ukf, np.eye(n))
+    assert np.array_equal(np.isnan(generic), np.isnan(large))
+    assert np.isfinite(large[:2]).all() and np.isfinite(large[2, :30]).all()
+    assert np.isnan(large[2, -1]).all()  # stopped
+    finite = np.isfinite(generic)
+    assert np.abs(generic[finite] - large[finite]).max() <= 1e-9 * np.abs(generic[finite]).max()
+    assert np.isnan(run(kalman_large.ukf, -np.eye(n))).all()
+    assert np.isnan(run(kalman_kernels.ukf, -np.eye(n))).all()
 
 
 @pytest.mark.parametrize(
