@@ -124,6 +124,27 @@ def _step_jacobian(drift, drift_jacobian, p, g, x, u, dt, out, work, stage_jacob
             )
 
 
+@numba.njit(inline="always")
+def _with_noise_inverted(S, R, residual, threshold, S3, R_used):
+    """Adds the measurement noise to the innovation covariance ``S (n_y, n_y)`` in place
+    (``R``, or Huber's ``R_used`` for a finite ``threshold``, from the ``residual (n_y,
+    1)``; ``S3, R_used: (n_y, n_y, 1)`` scratch) and returns ``(S^-1, True)``, or ``(empty,
+    False)`` where ``S`` is singular (LAPACK's ``getrf`` finds a zero pivot, as numpy's
+    ``inv`` does)."""
+    if math.isfinite(threshold):
+        S3[:, :, 0] = S + R
+        _huber_noise(R, residual, S3, threshold, R_used)
+    else:
+        R_used[:, :, 0] = R
+    S += R_used[:, :, 0]
+    inverse, invertible = np.asfortranarray(np.empty((0, 0))), True  # inv's layout
+    try:
+        inverse = np.linalg.inv(S)
+    except Exception:
+        invertible = False
+    return inverse, invertible
+
+
 @numba.njit  # disk-cached once bound to a model: kernel_cache.bind
 def ekf(
     drift, drift_jacobian, output, output_jacobian, sense, sense_slope, constrain,
@@ -142,7 +163,6 @@ def ekf(
     CH = np.empty((n, n_y))
     h_columns, h_counts = np.empty((n_y, n), np.int64), np.empty(n_y, np.int64)
     S3, R_used, SI = np.empty((n_y, n_y, 1)), np.empty((n_y, n_y, 1)), np.empty((n_y, n_y))
-    robust = math.isfinite(threshold)
     for b in range(batch):
         x[:, 0] = x0
         P[:, :] = P0
@@ -169,18 +189,8 @@ def ekf(
                 sensed_output(output, sense, q, s, x, h)
                 for j in range(n_y):
                     h[j, 0] = y[b, k, j] - h[j, 0]
-                if robust:
-                    S3[:, :, 0] = S + R
-                    _huber_noise(R, h, S3, threshold, R_used)
-                else:
-                    R_used[:, :, 0] = R
-                S += R_used[:, :, 0]
-                singular = False
-                try:
-                    SI = np.linalg.inv(S)
-                except Exception:  # LAPACK's getrf found a zero pivot, as numpy's inv does
-                    singular = True
-                if singular:
+                SI, invertible = _with_noise_inverted(S, R, h, threshold, S3, R_used)
+                if not invertible:
                     break  # the trajectory stops before this sample
                 K = np.dot(np.ascontiguousarray(HP.T), np.ascontiguousarray(SI))  # P H^T S^-1
                 for i in range(n):
@@ -246,7 +256,6 @@ def ukf(
     zp, innovation = np.empty(n_y), np.empty((n_y, 1))
     S3, R_used = np.empty((n_y, n_y, 1)), np.empty((n_y, n_y, 1))
     u_previous = np.empty(count)
-    robust = math.isfinite(threshold)
     for b in range(batch):
         x[:] = x0
         P[:, :] = P0
@@ -269,18 +278,8 @@ def ukf(
                 S = _unscented_transform(outputs, Wm, Wc, zp, residuals_z)
                 for j in range(n_y):
                     innovation[j, 0] = y[b, k, j] - zp[j]
-                if robust:
-                    S3[:, :, 0] = S + R
-                    _huber_noise(R, innovation, S3, threshold, R_used)
-                else:
-                    R_used[:, :, 0] = R
-                S += R_used[:, :, 0]
-                singular = False
-                try:
-                    SI = np.linalg.inv(S)
-                except Exception:  # LAPACK's getrf found a zero pivot, as numpy's inv does
-                    singular = True
-                if singular:
+                SI, invertible = _with_noise_inverted(S, R, innovation, threshold, S3, R_used)
+                if not invertible:
                     break  # the trajectory stops before this sample
                 for i in range(n):
                     for j in range(count):
