@@ -162,7 +162,7 @@ def ekf(
     H, HP, S = np.empty((n_y, n)), np.empty((n_y, n)), np.empty((n_y, n_y))
     CH = np.empty((n, n_y))
     h_columns, h_counts = np.empty((n_y, n), np.int64), np.empty(n_y, np.int64)
-    S3, R_used, SI = np.empty((n_y, n_y, 1)), np.empty((n_y, n_y, 1)), np.empty((n_y, n_y))
+    S3, R_used = np.empty((n_y, n_y, 1)), np.empty((n_y, n_y, 1))
     for b in range(batch):
         x[:, 0] = x0
         P[:, :] = P0
