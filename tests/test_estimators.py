@@ -15,15 +15,17 @@ from kkl_bench.task import Task, get_profile, make_test_set
 from kkl_bench.testing import Conformance, check_estimator
 from kkl_bench.tracks import get_track
 from kkl_bench.training import TrainingData
+from tests.budgets import few_steps
 
 _conformance = {}
 _training_inputs = {}
 
 
 def conformance(name):
-    """The estimator's conformance checks, fitted once while its training inputs are recorded."""
+    """The estimator's conformance checks, fitted once (for a few optimizer steps) while its
+    training inputs are recorded."""
     if name not in _conformance:
-        check = Conformance(name)
+        check = Conformance(name, budget=few_steps(name))
         simulate = TrainingData.simulate
         seen = []
 

@@ -3,14 +3,15 @@
 import numpy as np
 import pytest
 import torch
+from kkl_bench.estimators import kalman_unrolled
 from kkl_bench.systems.lorenz96 import lorenz96
 
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.protocol import DT
 from kkl_bench.protocol.simulate import simulate
 from kkl_bench.registry import systems
-from kkl_bench.task import get_profile
 from kkl_bench.testing import check_estimator
+from tests.budgets import few_steps
 
 NEW_SYSTEMS = [
     "fitzhugh_nagumo",
@@ -25,9 +26,13 @@ NEW_SYSTEMS = [
 LARGE = ("lorenz96-n80", "lorenz96-n160")
 """Too slow for the default run's conformance kit (the UKF's 321 sigma points at n = 160);
 they are Lorenz-96 like the smaller sizes, which it covers."""
-KIT_ONLY_WITH_EXHAUSTIVE = ("lorenz96-n10", "lorenz96-n40")
-"""Lorenz-96 sizes whose filters' kit runs with ``--exhaustive``: n = 5 takes the generic
-kernels and n = 20 the large-system EKF, the code paths these sizes take too."""
+KIT_IN_THE_DEFAULT_RUN = ("lorenz96-n5",)
+"""The system whose filters' kit runs without ``--exhaustive``: several outputs, the generic
+kernels. The others' kits compile kernels for these systems alone (80-90 s each from empty
+caches): FitzHugh-Nagumo takes the unrolled kernels the paper's oscillators take, Chua's
+piecewise drift the generic ones (:func:`test_chua_takes_the_generic_filter_kernels_and_fitzhugh_nagumo_the_unrolled`),
+Lorenz-96 from n = 20 the large-system kernels, which
+``tests/test_filter_engines.py`` compares with filterpy at n = 20."""
 
 
 @pytest.mark.parametrize("name", NEW_SYSTEMS)
@@ -87,6 +92,12 @@ def test_chua_stays_on_the_double_scroll():
     assert x[1000:, 0].min() < -1.0 < 1.0 < x[1000:, 0].max()  # visits both scrolls
 
 
+def test_chua_takes_the_generic_filter_kernels_and_fitzhugh_nagumo_the_unrolled():
+    """Chua's drift branches on the state: no straight-line code to unroll."""
+    assert not kalman_unrolled.unrollable(systems.get("chua")().compiled())
+    assert kalman_unrolled.unrollable(systems.get("fitzhugh_nagumo")().compiled())
+
+
 def test_each_output_drives_its_own_latent_modes():
     rates = spread_eigenvalues(6, 1.0, 10.0)
     a, b = latent_matrices(rates, n_y=2)
@@ -102,7 +113,7 @@ def test_each_output_drives_its_own_latent_modes():
 @pytest.mark.parametrize(
     "name",
     [
-        pytest.param(name, marks=pytest.mark.exhaustive if name in KIT_ONLY_WITH_EXHAUSTIVE else ())
+        pytest.param(name, marks=() if name in KIT_IN_THE_DEFAULT_RUN else pytest.mark.exhaustive)
         for name in NEW_SYSTEMS
         if name not in LARGE
     ],
@@ -111,20 +122,10 @@ def test_filters_pass_the_conformance_kit(estimator, name):
     check_estimator(estimator, name)
 
 
-FEW_STEPS = {
-    **{key: 20 for key in ("encoder_steps", "decoder_steps", "selection_steps", "phase2_steps")},
-    **{key: 20 for key in ("adaptation_steps", "rnn_steps")},
-    "curriculum_epoch_steps": 5,
-    "max_epochs": 2,
-}
-"""Cuts the quick budget to a few optimizer steps: what the kit checks does not need training."""
-
-
 @pytest.mark.parametrize("estimator", ["autonomous_kkl", "gru_observer"])
 def test_learned_estimators_pass_the_conformance_kit_with_several_outputs(estimator):
     """Lorenz-96 measures three of its five states: the latent design, the training data and
     every network see several outputs. Phase 1, which every KKL estimator builds on, and the
     recurrent baseline; each KKL estimator's own phase on several outputs runs in the
     more-systems track (about a minute each here, too long for every test run)."""
-    budget = {**get_profile("quick").budget_for(estimator), **FEW_STEPS}
-    check_estimator(estimator, "lorenz96-n5", budget)
+    check_estimator(estimator, "lorenz96-n5", few_steps(estimator))
