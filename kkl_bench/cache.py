@@ -10,6 +10,7 @@ files under ``<cache>/<kind>/`` (see :mod:`kkl_bench.kkl.cache`), each with a
 
 from __future__ import annotations
 
+import ast
 import functools
 import hashlib
 import importlib
@@ -32,8 +33,7 @@ def default_cache_dir() -> Path:
 def code_digest() -> str:
     """A digest of every Python file of kkl_bench's packages (the core, its systems and
     estimators): what the artifacts made from its code depend on (the bound kernels of
-    :mod:`kkl_bench.kernel_cache`, the figures ``publish`` keeps when their inputs are
-    unchanged)."""
+    :mod:`kkl_bench.kernel_cache`)."""
     digest = hashlib.sha256()
     roots = {Path(path) for name in ("", ".systems", ".estimators") for path in _paths(name)}
     for root in sorted(roots):
@@ -45,6 +45,54 @@ def code_digest() -> str:
 
 def _paths(subpackage: str) -> list[str]:
     return list(importlib.import_module(f"kkl_bench{subpackage}").__path__)
+
+
+@functools.cache
+def imported_code_digest(module: str) -> str:
+    """A digest of the source of ``module`` and of every module of its top-level package
+    that it imports, directly or through those (:func:`imported_modules`): the code of that
+    package which calling ``module``'s functions can run, short of objects passed to them
+    and modules loaded by name (an estimator found in the registry)."""
+    digest = hashlib.sha256()
+    for name in imported_modules(module):
+        digest.update(name.encode())
+        digest.update(Path(importlib.util.find_spec(name).origin).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def imported_modules(module: str) -> list[str]:
+    """``module`` and the modules of its top-level package that it imports, directly or
+    through those, sorted: read from their absolute import statements, those inside
+    functions included, without importing them."""
+    package = module.partition(".")[0]
+    found, pending = set(), [module]
+    while pending:
+        name = pending.pop()
+        if name not in found:
+            found.add(name)
+            source = Path(importlib.util.find_spec(name).origin).read_text()
+            pending += _imports(source, package)
+    return sorted(found)
+
+
+def _imports(source: str, package: str) -> list[str]:
+    """The modules of ``package`` that ``source``'s absolute import statements name: for
+    ``from A import B``, ``A.B`` where that is a module, else ``A``."""
+    names = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names if a.name.partition(".")[0] == package]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            if node.module.partition(".")[0] != package:
+                continue
+            spec = importlib.util.find_spec(node.module)
+            for alias in node.names:
+                submodule = f"{node.module}.{alias.name}"
+                is_module = spec is not None and spec.submodule_search_locations is not None
+                names.append(
+                    submodule if is_module and importlib.util.find_spec(submodule) else node.module
+                )
+    return names
 
 
 def checksum_path(path: Path) -> Path:

@@ -307,6 +307,14 @@ def track_summary(results: pd.DataFrame, by_condition: bool = False) -> pd.DataF
     per_track = {
         track: summary_table(cells) for track, cells in results.groupby("track", sort=False)
     }
+    return relative_summary(per_track, by_condition)
+
+
+def relative_summary(
+    per_track: dict[str, pd.DataFrame], by_condition: bool = False
+) -> pd.DataFrame:
+    """:func:`track_summary` from each track's :func:`summary_table` (track name -> table,
+    the paper track's among them), for a caller that has them already."""
     if PAPER_TRACK not in per_track:
         raise ValueError("the results hold no paper-track cells to compare the tracks with")
     paper = per_track[PAPER_TRACK].set_index(["estimator", "system", "regime"])

@@ -86,3 +86,43 @@ def test_a_change_to_any_source_file_changes_the_code_digest(tmp_path, monkeypat
     (tmp_path / "sub" / "model.py").write_text("y = 3\n")
     digests.append(cache.code_digest.__wrapped__())
     assert digests[0] != digests[1] == digests[2]
+
+
+def test_the_imported_code_digest_follows_imports_through_modules_and_functions(
+    tmp_path, monkeypatch
+):
+    """``drawing`` imports ``style`` at its top and ``labels`` inside a function, which
+    imports ``titles``; ``unused`` is imported by none of them."""
+    package = tmp_path / "digestpkg"
+    package.mkdir()
+    sources = {
+        "__init__.py": "",
+        "drawing.py": "import numpy\nfrom digestpkg import style\n\n\ndef draw():\n"
+        "    from digestpkg.labels import LABEL\n    return LABEL\n",
+        "style.py": "COLOUR = 'k'\n",
+        "labels.py": "from digestpkg.titles import TITLE as LABEL\n",
+        "titles.py": "TITLE = 't'\n",
+        "unused.py": "x = 1\n",
+    }
+    for name, source in sources.items():
+        (package / name).write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert cache.imported_modules("digestpkg.drawing") == [
+        f"digestpkg.{name}" for name in ("drawing", "labels", "style", "titles")
+    ]
+    digests = [cache.imported_code_digest.__wrapped__("digestpkg.drawing")]
+    (package / "unused.py").write_text("x = 2\n")
+    digests.append(cache.imported_code_digest.__wrapped__("digestpkg.drawing"))
+    (package / "titles.py").write_text("TITLE = 'T'\n")  # two imports away, in a function
+    digests.append(cache.imported_code_digest.__wrapped__("digestpkg.drawing"))
+    assert digests[0] == digests[1] != digests[2]
+
+
+def test_the_figures_draw_on_none_of_the_estimators_or_systems_code():
+    """What keeps a board's figures through a change to an estimator: that change reaches
+    a figure only through the results it draws."""
+    drawing = cache.imported_modules("kkl_bench.figures")
+    assert {"kkl_bench.figures", "kkl_bench.families", "kkl_bench.summary"} <= set(drawing)
+    assert not [
+        name for name in drawing if name.startswith(("kkl_bench.estimators", "kkl_bench.systems"))
+    ]

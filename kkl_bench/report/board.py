@@ -14,7 +14,7 @@ from kkl_bench.leaderboard import cost_table, grid_tables, measured_cost_table, 
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators
 from kkl_bench.report.model import HTML, Figure, Section, Table, Text
-from kkl_bench.summary import PAPER_PREFIX, summary_table, track_summary
+from kkl_bench.summary import PAPER_PREFIX, relative_summary, summary_table
 
 TAB = PAPER_TRACK
 """The page's panel of the paper track."""
@@ -24,9 +24,9 @@ TAB = PAPER_TRACK
 class TrackTables:
     """What the folder shows of the tracks other than the paper's.
 
-    summaries: track name -> its :func:`summary_table`; relative: :func:`track_summary`
-    (each track against the paper track); conditions: the same by condition; cells:
-    track name -> its cells.
+    summaries: track name -> its :func:`summary_table`; relative:
+    :func:`~kkl_bench.summary.track_summary` (each track against the paper track);
+    conditions: the same by condition; cells: track name -> its cells.
     """
 
     summaries: dict[str, pd.DataFrame]
@@ -36,13 +36,16 @@ class TrackTables:
 
     @classmethod
     def of(cls, results: pd.DataFrame, margin: float) -> TrackTables:
-        others = results[results["track"] != PAPER_TRACK]
-        cells = dict(iter(others.groupby("track")))
-        summaries = {name: summary_table(of, margin=margin) for name, of in cells.items()}
-        if not summaries:
+        tracks = dict(iter(results.groupby("track", sort=False)))  # in order of appearance
+        summaries = {name: summary_table(of, margin=margin) for name, of in tracks.items()}
+        cells = {name: tracks[name] for name in sorted(tracks) if name != PAPER_TRACK}
+        if not cells:
             return cls({}, pd.DataFrame(), pd.DataFrame(), {})
         return cls(
-            summaries, track_summary(results), track_summary(results, by_condition=True), cells
+            {name: summaries[name] for name in cells},
+            relative_summary(summaries),
+            relative_summary(summaries, by_condition=True),
+            cells,
         )
 
 

@@ -13,7 +13,7 @@ Writes, for one profile:
   inputs and files.
 
 Nothing is timed or dated here, so the same results give byte-identical files; a figure
-whose inputs (its data, this package's code, matplotlib's version) and files are those
+whose inputs (its data, the drawing code, matplotlib's version) and files are those
 the previous publication recorded is kept, not drawn again (adding one row to a board
 redraws the few figures that show it).
 """
@@ -32,7 +32,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from kkl_bench import figures
-from kkl_bench.cache import code_digest
+from kkl_bench.cache import imported_code_digest
 from kkl_bench.cost import COST_FILE, read_costs, with_measured_costs
 from kkl_bench.leaderboard import render
 from kkl_bench.protocol.streams import PAPER_TRACK
@@ -274,13 +274,15 @@ def figure_digest(inputs: str, path_without_suffix: Path) -> str:
 
 
 def _inputs_digest(draw: functools.partial) -> str:
-    """A digest of what ``draw`` draws from: its function and arguments, this package's
-    code and matplotlib's version. Pickling the same data twice gives the same bytes; where
-    it would not, the figure is only drawn again."""
+    """A digest of what ``draw`` draws from: its function and arguments, the code of this
+    package that its module imports (not the estimators' or systems': a change to those
+    reaches a figure through its arguments) and matplotlib's version. Pickling the same
+    data twice gives the same bytes; where it would not, the figure is only drawn again."""
     import matplotlib
 
-    digest = hashlib.sha256(f"{code_digest()}-matplotlib{matplotlib.__version__}".encode())
     function = draw.func
+    code = imported_code_digest(function.__module__)
+    digest = hashlib.sha256(f"{code}-matplotlib{matplotlib.__version__}".encode())
     payload = (function.__module__, function.__qualname__, draw.args, draw.keywords)
     digest.update(pickle.dumps(payload, protocol=5))
     return digest.hexdigest()[:16]
