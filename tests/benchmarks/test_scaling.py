@@ -17,7 +17,7 @@ from kkl_bench import scaling, variants
 from kkl_bench.registry import estimators
 from kkl_bench.spec import RunSpec, make_fit_context
 from kkl_bench.task import Task, get_profile, make_test_set
-from tests.benchmarks.test_estimate_cost import FEW_STEPS, one_thread  # noqa: F401 (fixture)
+from tests.benchmarks.test_estimate_cost import SMALL_FIT, one_thread  # noqa: F401 (fixture)
 
 NAMES = estimators.names()
 
@@ -38,7 +38,7 @@ def fitted(tmp_path_factory):
         )
         for name in NAMES:
             context = make_fit_context(spec, name, system, 0)
-            context = dataclasses.replace(context, budget={**context.budget, **FEW_STEPS})
+            context = dataclasses.replace(context, budget={**context.budget, **SMALL_FIT})
             models[name, n] = variants.build(name).fit(context)
     return models
 
