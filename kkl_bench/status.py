@@ -6,8 +6,8 @@ in a worker process. It states what it is doing in a small file of its own,
 training loops add how far they are (:func:`step`, at most once a second).
 The command that started the run reads every status file of its profile
 (:func:`current`) and shows them beside its progress bar. The files are
-removed when their job ends; one left by a killed run is older than the run
-that reads it and is not shown.
+removed when their job ends; one left by a killed run is not shown: it is older
+than the run that reads it, or it names a process of this machine that is gone.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import os
+import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,12 +34,15 @@ class _Status:
     def write(self, text: str) -> None:
         partial = self.path.with_name(self.path.name + ".partial")
         try:
-            partial.write_text(f"{self.job}: {text}")
+            partial.write_text(f"{_WRITER}\n{self.job}: {text}")
             os.replace(partial, self.path)
         except OSError:  # progress is a courtesy: never fail a job for it
             pass
         self.written = time.monotonic()
 
+
+_WRITER = f"{socket.gethostname()} {os.getpid()}"
+"""The first line of a status file: the machine and process that write it."""
 
 _CURRENT: contextvars.ContextVar[_Status | None] = contextvars.ContextVar(
     "kkl_bench_status", default=None
@@ -81,10 +85,27 @@ def step(what: str, done: int, total: int) -> None:
 
 def current(claims: Path, since: float) -> list[str]:
     """What every job with a status file under ``claims`` written at or after ``since``
-    (a ``time.time()``) says, sorted by job."""
+    (a ``time.time()``) by a process still running says, sorted by job."""
     texts = []
     for path in sorted(Path(claims).glob(f"*{SUFFIX}")):
         with contextlib.suppress(OSError):
             if path.stat().st_mtime >= since:
-                texts.append(path.read_text())
+                writer, _, text = path.read_text().partition("\n")
+                if _running(writer):
+                    texts.append(text)
     return texts
+
+
+def _running(writer: str) -> bool:
+    """Whether the process ``writer`` (``<machine> <pid>``) may still run: False only for
+    a process of this machine that is gone (another machine's cannot be asked)."""
+    machine, _, pid = writer.rpartition(" ")
+    if machine != socket.gethostname() or not pid.isdigit():
+        return True
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import socket
+import subprocess
+import sys
 import time
 
 import torch
@@ -25,8 +28,19 @@ def test_a_job_states_what_it_does_and_its_file_goes_with_it(tmp_path):
 
 def test_a_file_older_than_the_run_is_not_shown(tmp_path):
     stale = status.status_path(tmp_path, "left-by-a-killed-run")
-    stale.write_text("gru_observer on lorenz, seed 0: fitting")
+    stale.write_text(f"{status._WRITER}\ngru_observer on lorenz, seed 0: fitting")
     assert status.current(tmp_path, since=time.time() + 5) == []
+
+
+def test_a_file_of_a_process_that_is_gone_is_not_shown(tmp_path):
+    """A run killed after the reading run started leaves a newer file: its writer tells."""
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    since = time.time() - 1
+    for job, writer in [("killed", f"{socket.gethostname()} {gone}"),
+                        ("elsewhere", f"another-machine {gone}"), ("here", status._WRITER)]:  # fmt: skip
+        status.status_path(tmp_path, job).write_text(f"{writer}\n{job}: fitting")
+    assert status.current(tmp_path, since) == ["elsewhere: fitting", "here: fitting"]
 
 
 def test_training_reports_its_steps_at_most_once_a_second_and_at_the_end(tmp_path, monkeypatch):
