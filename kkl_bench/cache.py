@@ -56,7 +56,8 @@ def imported_code_digest(module: str) -> str:
     digest = hashlib.sha256()
     for name in imported_modules(module):
         digest.update(name.encode())
-        digest.update(Path(importlib.util.find_spec(name).origin).read_bytes())
+        source = _source_file(name)
+        digest.update(source.read_bytes() if source else b"")
     return digest.hexdigest()[:16]
 
 
@@ -70,9 +71,16 @@ def imported_modules(module: str) -> list[str]:
         name = pending.pop()
         if name not in found:
             found.add(name)
-            source = Path(importlib.util.find_spec(name).origin).read_text()
-            pending += _imports(source, package)
+            source = _source_file(name)
+            pending += _imports(source.read_text(), package) if source else []
     return sorted(found)
+
+
+def _source_file(module: str) -> Path | None:
+    """The file of ``module``'s source; None for a module without one (a namespace
+    package, a name that is not found)."""
+    spec = importlib.util.find_spec(module)
+    return Path(spec.origin) if spec is not None and spec.has_location and spec.origin else None
 
 
 def _imports(source: str, package: str) -> list[str]:

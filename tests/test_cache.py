@@ -91,14 +91,16 @@ def test_a_change_to_any_source_file_changes_the_code_digest(tmp_path, monkeypat
 def test_the_imported_code_digest_follows_imports_through_modules_and_functions(
     tmp_path, monkeypatch
 ):
-    """``drawing`` imports ``style`` at its top and ``labels`` inside a function, which
-    imports ``titles``; ``unused`` is imported by none of them."""
+    """``drawing`` imports ``style`` at its top, ``labels`` inside a function, which
+    imports ``titles``, and tries ``optional``, which is not there; ``unused`` is imported
+    by none of them."""
     package = tmp_path / "digestpkg"
     package.mkdir()
     sources = {
         "__init__.py": "",
         "drawing.py": "import numpy\nfrom digestpkg import style\n\n\ndef draw():\n"
-        "    from digestpkg.labels import LABEL\n    return LABEL\n",
+        "    from digestpkg.labels import LABEL\n    return LABEL\n\n\n"
+        "try:\n    import digestpkg.optional\nexcept ImportError:\n    pass\n",
         "style.py": "COLOUR = 'k'\n",
         "labels.py": "from digestpkg.titles import TITLE as LABEL\n",
         "titles.py": "TITLE = 't'\n",
@@ -108,7 +110,7 @@ def test_the_imported_code_digest_follows_imports_through_modules_and_functions(
         (package / name).write_text(source)
     monkeypatch.syspath_prepend(str(tmp_path))
     assert cache.imported_modules("digestpkg.drawing") == [
-        f"digestpkg.{name}" for name in ("drawing", "labels", "style", "titles")
+        f"digestpkg.{name}" for name in ("drawing", "labels", "optional", "style", "titles")
     ]
     digests = [cache.imported_code_digest.__wrapped__("digestpkg.drawing")]
     (package / "unused.py").write_text("x = 2\n")
