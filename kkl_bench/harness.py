@@ -259,8 +259,8 @@ def rows_and_tasks(spec: RunSpec, estimator: str, system: str) -> list[tuple[str
     (one for all tasks but those of a track fitted per task); if it uses logged data,
     ``<name>+logged`` on the tasks of each true plant (one fit per plant); if it is a Bayes
     limit, ``<name>+truth`` on the tasks whose truth differs from the protocol's (one fit
-    per truth). ``estimator`` may name one of those rows (``particle_filter+truth``): its
-    fits only.
+    per truth); neither with ``spec.own_rows_only``. ``estimator`` may name one of those
+    rows (``particle_filter+truth``): its fits only.
     """
     tasks = spec.tasks(system)
     name, only = variants.split_row(estimator)
@@ -269,6 +269,8 @@ def rows_and_tasks(spec: RunSpec, estimator: str, system: str) -> list[tuple[str
         kind = "a Bayes limit" if only == variants.TRUTH else "an estimator that uses logged data"
         raise ValueError(f"row {estimator!r}: {name!r} is not {kind}, so it has no {only} row")
     rows = [(name, group) for _, group in fit_groups(tasks)]
+    if spec.own_rows_only:
+        return rows
     if declared.bayes_limit:
         rows += [(variants.truth_row(name), group) for _, group in truth_groups(tasks)]
     if declared.uses_logged_data:

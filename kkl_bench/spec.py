@@ -47,6 +47,10 @@ class RunSpec:
     command: str | None = None
     """The command line that started the run (``kkl-bench run ...``), recorded in every
     cell's provenance; None when the harness is called from Python."""
+    own_rows_only: bool = False
+    """Fit each estimator for its own row only: not its ``+logged`` row (fitted anew on
+    each true plant's logged data) nor its ``+truth`` row (to score the own row's cells
+    again after its fit changed, without the others' fits)."""
 
     def __post_init__(self) -> None:
         if not self.estimators:
@@ -79,6 +83,12 @@ class RunSpec:
             raise ValueError("no seeds selected")
         if any(seed < 0 for seed in self.seeds):
             raise ValueError(f"seeds must be non-negative integers, got {list(self.seeds)}")
+        derived = [name for name in self.estimators if variants.split_row(name)[1]]
+        if self.own_rows_only and derived:
+            raise ValueError(
+                f"own rows only, but {', '.join(map(repr, derived))} "
+                f"{'is' if len(derived) == 1 else 'are'} not an estimator's own row"
+            )
         canonical = tuple(dict.fromkeys(variants.canonical(name) for name in self.estimators))
         object.__setattr__(self, "estimators", canonical)
         object.__setattr__(self, "seeds", tuple(dict.fromkeys(self.seeds)))

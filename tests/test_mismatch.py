@@ -156,3 +156,20 @@ def test_an_estimator_using_logged_data_gets_one_more_row_fitted_per_plant(
     )
     assert cell.status == "ok" and cell.estimator == "records_logged_data+logged"
     assert variants.base_name(cell.estimator) == "records_logged_data"
+
+
+def test_own_rows_only_fits_no_logged_row_and_refuses_to_be_given_one(tmp_path, register_estimator):
+    register_estimator("records_logged_data", _RecordsLoggedData)
+    arguments = ("vdp",), None, get_profile("quick")
+    spec = RunSpec(
+        ("records_logged_data",), *arguments, results_dir=tmp_path, cache_dir=tmp_path,
+        tracks=("mismatch",), own_rows_only=True,
+    )  # fmt: skip
+    jobs, _ = plan(spec)
+    assert [(job.estimator, len(job.tasks)) for job in jobs] == [("records_logged_data", 6)]
+    with pytest.raises(
+        ValueError, match="'records_logged_data\\+logged' is not an estimator's own row"
+    ):
+        RunSpec(
+            ("records_logged_data+logged",), *arguments, tracks=("mismatch",), own_rows_only=True
+        )

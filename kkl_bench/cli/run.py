@@ -97,6 +97,12 @@ def add_parser(commands) -> None:
         "cpu), cpu or cuda; models are cached as CPU tensors and estimates run on the CPU",
     )
     run.add_argument("--force", action="store_true", help="recompute cells already on disk")
+    run.add_argument(
+        "--own-rows-only",
+        action="store_true",
+        help="fit each estimator for its own row only, not its +logged or +truth rows (to "
+        "score its cells again after its fit changed)",
+    )
     run.set_defaults(handler=run_command)
 
 
@@ -113,6 +119,7 @@ def run_command(args: argparse.Namespace) -> int:
         force=args.force,
         device=args.device,
         command=args.command_line,
+        own_rows_only=args.own_rows_only,
     )
     if args.scheduler is None:  # local workers: a missing GPU is an error before any work
         resolve_device(args.device)
