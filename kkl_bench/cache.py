@@ -54,10 +54,9 @@ def imported_code_digest(module: str) -> str:
     package which calling ``module``'s functions can run, short of objects passed to them
     and modules loaded by name (an estimator found in the registry)."""
     digest = hashlib.sha256()
-    for name in imported_modules(module):
+    for name, source in sorted(_imported_sources(module).items()):
         digest.update(name.encode())
-        source = _source_file(name)
-        digest.update(source.read_bytes() if source else b"")
+        digest.update(source)
     return digest.hexdigest()[:16]
 
 
@@ -65,25 +64,26 @@ def imported_modules(module: str) -> list[str]:
     """``module`` and the modules of its top-level package that it imports, directly or
     through those, sorted: read from their absolute import statements, those inside
     functions included, without importing them."""
+    return sorted(_imported_sources(module))
+
+
+def _imported_sources(module: str) -> dict[str, bytes]:
+    """Each module of :func:`imported_modules` -> its source (empty for a module without a
+    source file: a namespace package, a name that is not found)."""
     package = module.partition(".")[0]
-    found, pending = set(), [module]
+    sources: dict[str, bytes] = {}
+    pending = [module]
     while pending:
         name = pending.pop()
-        if name not in found:
-            found.add(name)
-            source = _source_file(name)
-            pending += _imports(source.read_text(), package) if source else []
-    return sorted(found)
+        if name not in sources:
+            spec = importlib.util.find_spec(name)
+            found = spec is not None and spec.has_location and spec.origin
+            sources[name] = Path(spec.origin).read_bytes() if found else b""
+            pending += _imports(sources[name], package)
+    return sources
 
 
-def _source_file(module: str) -> Path | None:
-    """The file of ``module``'s source; None for a module without one (a namespace
-    package, a name that is not found)."""
-    spec = importlib.util.find_spec(module)
-    return Path(spec.origin) if spec is not None and spec.has_location and spec.origin else None
-
-
-def _imports(source: str, package: str) -> list[str]:
+def _imports(source: bytes, package: str) -> list[str]:
     """The modules of ``package`` that ``source``'s absolute import statements name: for
     ``from A import B``, ``A.B`` where that is a module, else ``A``."""
     names = []
@@ -94,12 +94,11 @@ def _imports(source: str, package: str) -> list[str]:
             if node.module.partition(".")[0] != package:
                 continue
             spec = importlib.util.find_spec(node.module)
+            is_package = spec is not None and spec.submodule_search_locations is not None
             for alias in node.names:
                 submodule = f"{node.module}.{alias.name}"
-                is_module = spec is not None and spec.submodule_search_locations is not None
-                names.append(
-                    submodule if is_module and importlib.util.find_spec(submodule) else node.module
-                )
+                found = is_package and importlib.util.find_spec(submodule)
+                names.append(submodule if found else node.module)
     return names
 
 

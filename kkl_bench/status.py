@@ -106,6 +106,6 @@ def _running(writer: str) -> bool:
         os.kill(int(pid), 0)
     except ProcessLookupError:
         return False
-    except PermissionError:  # another user's process
-        return True
+    except PermissionError:  # another user's process, running
+        pass
     return True
