@@ -1,10 +1,12 @@
 """The command line: smoke runs, the leaderboard, and clear errors on bad input."""
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench.cli import main
+from kkl_bench.cli import main, recorded_command
 from kkl_bench.estimator import Estimator
 from kkl_bench.registry import estimators
 from kkl_bench.testing import check_estimator
@@ -313,3 +315,24 @@ def test_every_unknown_name_gets_a_suggestion(arguments, suggestion, tmp_path, c
     assert main(["run", *arguments, "--results", str(tmp_path)]) == 2
     assert f"(did you mean {suggestion}?)" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # refused before any work
+
+
+def test_recorded_command_names_no_absolute_path(tmp_path):
+    inside, outside = tmp_path / "repo", tmp_path / "scratch" / "refit-results"
+    argv = ["run", "--results", str(inside / "leaderboard" / "results"), f"--cache={outside}"]
+    recorded = recorded_command([*argv, "--estimator", "ekf"], cwd=inside)
+    assert recorded == (
+        "kkl-bench run --results leaderboard/results '--cache=<...>/refit-results' --estimator ekf"
+    )
+    assert recorded_command(["run", "--results", str(inside)], cwd=inside) == (
+        "kkl-bench run --results ."
+    )
+
+
+def test_a_run_records_its_results_folder_relative_to_where_it_ran(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = ["run", "--estimator", "ekf", "--system", "vdp", "--regime", "zero"]
+    assert main([*args, "--results", str(tmp_path / "results")]) == 0
+    (cell,) = (tmp_path / "results").rglob("*.json")
+    command = json.loads(cell.read_text())["provenance"]["command"]
+    assert command == f"kkl-bench {' '.join(args)} --results results"

@@ -9,9 +9,11 @@ the errors a user can fix into one line and exit status 2.
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from kkl_bench.cli import admin, publishing, run, tables, verify
 from kkl_bench.registry import PluginLoadError, UnknownNameError
@@ -55,10 +57,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def recorded_command(argv: Sequence[str], cwd: Path | None = None) -> str:
+    """The command line a run's cells record: ``kkl-bench`` and ``argv`` as given, except
+    that an absolute path (an argument, or the value of ``--option=PATH``) is written
+    relative to the working directory ``cwd`` when it lies inside it (the same command
+    run from there) and as ``<...>/NAME`` when it lies outside, so that no record, and no
+    board that prints it, names a path of one machine."""
+    cwd = Path.cwd() if cwd is None else cwd
+
+    def portable(token: str) -> str:
+        option, equals, value = token.partition("=") if token.startswith("--") else ("", "", token)
+        if not os.path.isabs(value):
+            return token
+        path = Path(value)
+        rendered = str(path.relative_to(cwd)) if path.is_relative_to(cwd) else f"<...>/{path.name}"
+        return f"{option}{equals}{rendered}"
+
+    return shlex.join(["kkl-bench", *map(portable, argv)])
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
-    args.command_line = shlex.join(["kkl-bench", *argv])
+    args.command_line = recorded_command(argv)
     try:
         return args.handler(args)
     except (
