@@ -9,7 +9,6 @@ the errors a user can fix into one line and exit status 2.
 from __future__ import annotations
 
 import argparse
-import os
 import shlex
 import sys
 from collections.abc import Sequence
@@ -67,9 +66,9 @@ def recorded_command(argv: Sequence[str], cwd: Path | None = None) -> str:
 
     def portable(token: str) -> str:
         option, equals, value = token.partition("=") if token.startswith("--") else ("", "", token)
-        if not os.path.isabs(value):
-            return token
         path = Path(value)
+        if not path.is_absolute():
+            return token
         rendered = str(path.relative_to(cwd)) if path.is_relative_to(cwd) else f"<...>/{path.name}"
         return f"{option}{equals}{rendered}"
 
