@@ -6,12 +6,11 @@ sinusoids with w in [0.8, 2.5] rad/s; square waves with P in [2, 10] s;
 mixtures of 2-4 sinusoids. Only the decoder ``T*`` is trained (``A``, ``B``
 and ``T`` stay as in Phase 1), on pairs (latent state of the input-ignoring
 observer, true state) over the scored window: what ``T*`` sees at test time.
-An epoch is ``curriculum_epoch_steps`` Adam steps; the level advances when the
-best loss of the last ``patience`` epochs improves on the best before them by
-less than ``threshold`` (relative), after at least ``min_epochs`` and at most
-``max_epochs`` epochs. Each epoch is a cosine-annealed Adam run from
-lr 1e-3 (warm restarts, so the rate also restarts at each level); no
-unforced data are replayed (as in the paper).
+Each level is one training from lr 1e-3 (the rate restarts at each level) that
+ends by the plateau rule (:mod:`kkl_bench.kkl.plateau`) on the decoder's RMSE on
+the level's own validation trajectories, at most ``curriculum_steps`` steps, and
+hands its best state to the next level; no unforced data are replayed (as in the
+paper).
 """
 
 from __future__ import annotations
@@ -21,13 +20,13 @@ from dataclasses import dataclass
 
 import torch
 
-from kkl_bench.convergence import converged
-from kkl_bench.kkl.autonomous import decoder_rmse, fit_phase1, train_decoder
+from kkl_bench.kkl.autonomous import fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import observer_data, validation_count
 from kkl_bench.kkl.estimator import KKLEstimator
 from kkl_bench.kkl.inputs import ConstantFamily, MultiSineFamily, SineFamily, SquareFamily
 from kkl_bench.kkl.phase2 import Phase2Config, load_or_train, phase2_description
+from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.registry import estimators
 
 LEVELS = (
@@ -43,20 +42,9 @@ LEVELS = (
 class CurriculumConfig:
     """The curriculum's budget (read with :func:`kkl_bench.kkl.config.from_budget`)."""
 
-    curriculum_epoch_steps: int = 100
-    min_epochs: int = 5
-    max_epochs: int = 50
-    patience: int = 5
-    threshold: float = 0.01
-
-
-def plateaued(losses: list[float], patience: int, threshold: float) -> bool:
-    """True when the best of the last ``patience`` losses is not ``threshold`` (relative)
-    below the best loss before them."""
-    if len(losses) <= patience:
-        return False
-    before = min(losses[:-patience])
-    return min(losses[-patience:]) > (1.0 - threshold) * before
+    curriculum_steps: int = 8000
+    """The cap of each level's training (Adam steps)."""
+    curriculum_batch: int = 1024
 
 
 @estimators.register("curriculum_kkl")
@@ -77,21 +65,22 @@ class CurriculumKKL(KKLEstimator):
         model = copy.deepcopy(fit_phase1(context, self.pde_weight))
         data_config = from_budget(Phase2Config, context)
         config = from_budget(CurriculumConfig, context)
+        rule = from_budget(PlateauRule, context)
         description = phase2_description(
-            model, "kkl-curriculum", data_config, {**self.get_params(), **config.__dict__}
+            model, "kkl-curriculum", data_config, {**self.get_params(), **config.__dict__}, rule
         )
         self.log_ = load_or_train(
             context,
             description,
             model.decoder,
-            lambda generator: self._train(context, model, data_config, config, generator),
+            lambda generator: self._train(context, model, data_config, config, rule, generator),
         )
         self.model_ = model
 
     @staticmethod
-    def _train(context, model, data_config, config, generator) -> dict:
-        """Each level's epochs until its loss plateaus; per level, the validation curve of
-        the decoder's RMSE on the level's own validation trajectories, epoch by epoch."""
+    def _train(context, model, data_config, config, rule, generator) -> dict:
+        """Train the decoder level by level; per level, its training log (the validation
+        curve of the decoder's RMSE on the level's own validation trajectories)."""
         decoder = model.decoder
         decoder.requires_grad_(True)
         log = {}
@@ -106,32 +95,17 @@ class CurriculumKKL(KKLEstimator):
                 validation_count(count),
                 f"kkl/curriculum/{index}/validation",
             ).scored()
-            validation_rmse = decoder_rmse(
-                decoder, torch.as_tensor(z_val, dtype=torch.float32), x_val
-            )
-            epoch_losses, curve = [], [(0, validation_rmse())]
-            while len(epoch_losses) < config.max_epochs:
-                losses = train_decoder(
-                    decoder,
-                    z,
-                    x,
-                    config.curriculum_epoch_steps,
-                    1024,
-                    generator,
-                    f"{context.system.name}: curriculum {level}",
-                ).losses
-                epoch_losses.append(sum(losses) / len(losses))
-                curve.append((len(epoch_losses) * config.curriculum_epoch_steps, validation_rmse()))
-                if len(epoch_losses) >= config.min_epochs and plateaued(
-                    epoch_losses, config.patience, config.threshold
-                ):
-                    break
-            log[level] = {
-                "epochs": len(epoch_losses),
-                "final_loss": epoch_losses[-1],
-                "validation_curve": curve,
-                "converged": converged(curve),
-            }
+            log[level] = train_decoder(
+                decoder,
+                z,
+                x,
+                config.curriculum_steps,
+                config.curriculum_batch,
+                generator,
+                f"{context.system.name}: curriculum {level}",
+                validation=(torch.as_tensor(z_val, dtype=torch.float32), x_val),
+                rule=rule,
+            ).log()
         return log
 
     def estimate(self, t, y, u):

@@ -97,7 +97,7 @@ class DynamicHyperKKL(KKLEstimator):
             self._train,
         )
 
-    def _train(self, context, model, config, hyper, generator) -> dict:
+    def _train(self, context, model, config, hyper, rule, generator) -> dict:
         """Fit the hypernetwork (see the module); the log records the loss on held-out
         forced samples as the validation curve."""
         system = context.system
@@ -161,6 +161,7 @@ class DynamicHyperKKL(KKLEstimator):
             validation=held_out_loss(
                 lambda generator: batch_loss(held_out, held_out_pool, generator)
             ),
+            rule=rule,
         ).log()
 
     def estimate(self, t, y, u):

@@ -19,7 +19,10 @@ follow, both on training streams:
 2. a copy of ``T*`` is fine-tuned on the latent states this observer itself
    produces along forced and unforced training trajectories
    (``adaptation_rounds`` rounds, since those states depend on the decoder
-   through the injection).
+   through the injection). Each round ends by the plateau rule on the
+   decoder's RMSE on the latent states the observer produces along validation
+   trajectories, and the decoder kept is the one, of the rounds' and Phase 1's,
+   with the lowest RMSE of the injected observer on those trajectories.
 
 Without ``adapt`` (the pure stationary observer, gain 1), zero input gives
 exactly ``autonomous_kkl``.
@@ -33,7 +36,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from kkl_bench.convergence import converged
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1, train_decoder
 from kkl_bench.kkl.config import from_budget
@@ -43,6 +45,7 @@ from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import GAINS, select_gain, simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.phase2 import load_or_train, phase2_description
+from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.protocol.metrics import rmse, steady_state_start
 from kkl_bench.registry import estimators, regimes
 
@@ -54,7 +57,7 @@ class AdaptationConfig:
     adaptation_trajectories: int = 64
     """Training trajectories of each kind (unforced, forced); half as many validate the gain."""
     adaptation_steps: int = 16000
-    """Adam steps over all rounds."""
+    """The cap of Adam steps over all rounds (a round's is its share)."""
     adaptation_rounds: int = 4
     injection_gains: tuple[float, ...] = GAINS
     batch: int = 1024
@@ -100,6 +103,7 @@ def adapt(
     context: FitContext,
     model: AutonomousModel,
     config: AdaptationConfig,
+    rule: PlateauRule,
     generator: torch.Generator,
 ) -> dict:
     """Choose the injection gain, then fine-tune ``model.decoder`` in place on the
@@ -107,9 +111,12 @@ def adapt(
 
     Each round runs the observer (with the current decoder in the injection)
     on ``adaptation_trajectories`` unforced and as many forced training
-    trajectories (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING`), then trains
-    the decoder on the pairs ``(z_k, x_k)`` of the scored window. Returns the
-    gain, its selection scores and the final loss of each round.
+    trajectories (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING`) and on their
+    validation counterparts, then trains the decoder on the pairs ``(z_k, x_k)`` of
+    the scored window under the plateau ``rule``. Returns the gain, its selection
+    scores, each round's training log and ``rounds_curve``: the injected observer's
+    validation RMSE before the first round and after each (``(steps, RMSE)``), whose
+    lowest point gives the decoder kept (``best_round``, 0 for Phase 1's).
     """
     system = context.system
     gain, scores = select_gain(
@@ -126,31 +133,39 @@ def adapt(
     x_val, y_val, u_val = simulate_families(
         context, families, validation_count(config.adaptation_trajectories), "kkl/adapt/curve"
     )
+    start = steady_state_start(x.shape[1])
+
+    def scored(array: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(array[:, start:].reshape(-1, array.shape[-1]), dtype=torch.float32)
+
+    def latent(y: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return model.observer.run(y, ExactInjection(model, system.g, u, gain))
 
     def validation_rmse() -> float:  # the injected observer's, on its own trajectories
-        z = model.observer.run(y_val, ExactInjection(model, system.g, u_val, gain))
-        return float(rmse(x_val, model.decode(z)).mean())
+        return float(rmse(x_val, model.decode(latent(y_val, u_val))).mean())
 
-    start = steady_state_start(x.shape[1])
-    states = torch.as_tensor(x[:, start:].reshape(-1, system.n_x), dtype=torch.float32)
     model.decoder.requires_grad_(True)
-    steps = config.adaptation_steps // config.adaptation_rounds
+    cap = config.adaptation_steps // config.adaptation_rounds
     curve = [(0, validation_rmse())]
-    for round_ in range(config.adaptation_rounds):
-        z = model.observer.run(y, ExactInjection(model, system.g, u, gain))
-        latent = torch.as_tensor(z[:, start:].reshape(-1, z.shape[-1]), dtype=torch.float32)
+    best = (curve[0][1], 0, copy.deepcopy(model.decoder.state_dict()))
+    for round_ in range(1, config.adaptation_rounds + 1):
         training = train_decoder(
             model.decoder,
-            latent,
-            states,
-            steps,
+            scored(latent(y, u)),
+            scored(x),
+            cap,
             config.batch,
             generator,
-            f"{system.name}: adapting T* ({round_ + 1}/{config.adaptation_rounds})",
+            f"{system.name}: adapting T* ({round_}/{config.adaptation_rounds})",
+            validation=(scored(latent(y_val, u_val)), x_val[:, start:].reshape(-1, system.n_x)),
+            rule=rule,
         )
-        log[f"round {round_ + 1}"] = training.log()
-        curve.append(((round_ + 1) * steps, validation_rmse()))
-    return {**log, "validation_curve": curve, "converged": converged(curve)}
+        log[f"round {round_}"] = training.log()
+        curve.append((curve[-1][0] + len(training.losses), validation_rmse()))
+        if curve[-1][1] < best[0]:
+            best = (curve[-1][1], round_, copy.deepcopy(model.decoder.state_dict()))
+    model.decoder.load_state_dict(best[2])
+    return {**log, "rounds_curve": curve, "best_round": best[1]}
 
 
 @estimators.register("injection_kkl")
@@ -176,12 +191,15 @@ class InjectionKKL(KKLEstimator):
         if self.adapt:
             model = copy.deepcopy(model)
             config = from_budget(AdaptationConfig, context)
-            description = phase2_description(model, "kkl-injection", config, self.get_params())
+            rule = from_budget(PlateauRule, context)
+            description = phase2_description(
+                model, "kkl-injection", config, self.get_params(), rule
+            )
             self.log_ = load_or_train(
                 context,
                 description,
                 model.decoder,
-                lambda generator: adapt(context, model, config, generator),
+                lambda generator: adapt(context, model, config, rule, generator),
             )
             self.gain_ = self.log_["injection_gain"]
         self.model_ = model

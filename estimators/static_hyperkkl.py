@@ -95,7 +95,7 @@ class StaticHyperKKL(KKLEstimator):
             self.log_ = {**self.log_, "injection_gain": self.gain_, "gain_selection": scores}
 
     @staticmethod
-    def _train(context, model, config, injection, generator) -> dict:
+    def _train(context, model, config, injection, rule, generator) -> dict:
         """Fit ``psi`` to the encoder's derivative along ``g``; the log records the loss on
         held-out forced samples as the validation curve."""
         encoder = model.encoder
@@ -121,6 +121,7 @@ class StaticHyperKKL(KKLEstimator):
             config.phase2_batch,
             description=f"{context.system.name}: injection psi",
             validation=held_out_loss(lambda generator: batch_loss(held_out, generator)),
+            rule=rule,
         ).log()
 
     def _injection(self, u: np.ndarray, gain: float):

@@ -1,10 +1,13 @@
 """Whether a fit's trainings converged, read from its fit report (protocol section 6.5).
 
-Every training of a learned row records a validation curve and whether it
-converged (:func:`converged`) under a ``"converged"`` key
+Every training of a learned row records a validation curve and why it stopped
+(``"stopped"``, :data:`STOPPED_BY`: the plateau rule of :mod:`kkl_bench.kkl.plateau`)
 somewhere in its fit report: the sequence networks' training log, Phase 1's
-decoder (``phase1_log``), ``injection_kkl``'s adaptation, each curriculum level,
-the hypernetworks' second phase. A fit converged when all of them did.
+encoder and decoder (``phase1_log``), each round of ``injection_kkl``'s adaptation,
+each curriculum level, the hypernetworks' second phase. A training converged when the
+plateau stopped it; a fit converged when all of its trainings did. Fit reports written
+before the plateau rule carry no ``"stopped"``: their curves are read by the rule of
+that time (:func:`outcome`).
 """
 
 from __future__ import annotations
@@ -21,6 +24,11 @@ curves were recorded); nothing trained (a filter)."""
 CONVERGENCE_TOLERANCE = 0.05
 """A training has converged when the second half of its steps lowered the validation
 error by less than this fraction of the best error of the first half (:func:`converged`)."""
+
+STOPPED_BY = {"plateau": YES, "cap": NO, "diverged": DIVERGED}
+"""Why a training under the plateau rule stopped, and the verdict that reads: its
+validation error plateaued at the lowest learning rate; it reached its cap of steps
+first; its validation error was not finite."""
 
 DIVERGED_RATIO = 2.0
 """A training whose last validation error is above this many times its best diverged
@@ -64,12 +72,15 @@ def converged(curve: list[tuple[int, float]] | list[list[float]]) -> bool | None
 
 
 def outcomes(report: Any) -> list[str]:
-    """The verdict on each training in a fit ``report`` (nested dicts), in order: its
-    ``validation_curve`` read by today's :func:`outcome`, else its stored ``"converged"``
-    (a stored False reads :data:`NO`: without the curve, divergence cannot be told)."""
+    """The verdict on each training in a fit ``report`` (nested dicts), in order: why it
+    stopped (:data:`STOPPED_BY`); for a training from before the plateau rule, its
+    ``validation_curve`` read by :func:`outcome`, else its stored ``"converged"`` (a
+    stored False reads :data:`NO`: without the curve, divergence cannot be told)."""
     if not isinstance(report, dict):
         return []
-    if "validation_curve" in report:
+    if report.get("stopped") in STOPPED_BY:
+        found = [STOPPED_BY[report["stopped"]]]
+    elif "validation_curve" in report:
         found = [outcome(report["validation_curve"])]
     elif "converged" in report:
         found = [{True: YES, False: NO}.get(report["converged"], UNRECORDED)]

@@ -8,8 +8,8 @@ from kkl_bench.task import get_profile
 FEW_STEPS = {
     **{key: 20 for key in ("encoder_steps", "decoder_steps", "selection_steps", "phase2_steps")},
     **{key: 20 for key in ("adaptation_steps", "rnn_steps")},
-    "curriculum_epoch_steps": 5,
-    "max_epochs": 2,
+    "curriculum_steps": 10,
+    "validate_every": 5,
 }
 """Cuts the quick budget to a few optimizer steps (the filters read none of these keys)."""
 

@@ -42,8 +42,10 @@ TINY = dict(
     phase2_steps=40,
     window=20,
     lstm_hidden=8,
-    curriculum_epoch_steps=5,
-    max_epochs=6,
+    curriculum_steps=30,
+    validate_every=10,
+    plateau_patience=2,
+    plateau_reductions=1,
     adaptation_steps=40,
     adaptation_trajectories=8,
 )
@@ -273,7 +275,13 @@ def harmonic(tmp_path_factory):
     """autonomous_kkl and the pure injection_kkl on the harmonic oscillator (one Phase 1)."""
     context = context_for(
         HarmonicOscillator(),
-        {**TINY, "encoder_steps": 1500, "decoder_steps": 800, "rate_candidates": [[1.0, 5.0]]},
+        {
+            **TINY,
+            "encoder_steps": 1500,
+            "decoder_steps": 800,
+            "rate_candidates": [[1.0, 5.0]],
+            **{"validate_every": 50, "plateau_patience": 4, "plateau_reductions": 3},
+        },
         tmp_path_factory.mktemp("harmonic-cache"),
     )
     return {
@@ -560,11 +568,16 @@ def test_guarded_static_hyperkkl_uses_the_gain_with_the_best_validation_score(fi
 def test_adapted_injection_kkl_trains_a_copy_of_the_decoder_and_logs_its_rounds(fitted_family):
     adapted, pure = fitted_family["injection_kkl"], fitted_family["pure_injection_kkl"]
     log = adapted.fit_report()["training_log"]
-    assert list(log) == ["injection_gain", "gain_selection"] + [
-        f"round {i}" for i in range(1, 5)
-    ] + ["validation_curve", "converged", "spent"]
-    # the injected observer's validation RMSE before adapting and after each round
-    assert [step for step, _ in log["validation_curve"]] == [0, 10, 20, 30, 40]
+    rounds = [f"round {i}" for i in range(1, 5)]
+    kept = ["rounds_curve", "best_round", "spent"]
+    assert list(log) == ["injection_gain", "gain_selection", *rounds, *kept]
+    # the injected observer's validation RMSE before adapting and after each round, which
+    # ends by the plateau rule within its share of the cap (40 steps over 4 rounds)
+    steps = [log[round_]["steps"] for round_ in rounds]
+    assert all(1 <= taken <= 10 for taken in steps)
+    assert [step for step, _ in log["rounds_curve"]] == [0, *np.cumsum(steps).tolist()]
+    errors = [error for _, error in log["rounds_curve"]]
+    assert errors[log["best_round"]] == min(errors)
     assert set(log["gain_selection"]) == {"0", "0.25", "0.5", "0.75", "1"}
     assert log["injection_gain"] == adapted.gain_ and pure.gain_ == 1.0
     assert "training_log" not in pure.fit_report()
@@ -621,7 +634,13 @@ def test_curriculum_walks_every_level_and_records_it(fitted_family):
         "square 2-10 s",
         "multi-sine",
     ]
-    assert all(5 <= level["epochs"] <= 6 for level in log.values())
+    assert all(level["stopped"] in ("plateau", "cap", "diverged") for level in log.values())
+    assert all(level["steps"] <= TINY["curriculum_steps"] for level in log.values())
+    assert all(
+        [error for step, error in level["validation_curve"] if step == level["best_step"]]
+        == [min(error for _, error in level["validation_curve"])]
+        for level in log.values()
+    )
 
 
 def test_auto_training_box_covers_forced_states_only_where_they_leave_the_unforced_range():
@@ -674,22 +693,33 @@ def test_checkpoints_are_reused_and_invalidated(tmp_path, monkeypatch):
 def test_fit_reports_count_the_optimizer_steps_and_samples_each_phase_spent(fitted_family):
     batch = 1024  # Phase1Config.batch; the encoder draws data pairs and collocation points
     selection = len(TINY["rate_candidates"]) * TINY["selection_steps"]
+    logs = fitted_family["autonomous_kkl"].fit_report()["phase1_log"]
+    encoder, decoder = logs["encoder"]["steps"], logs["decoder"]["steps"]
+    assert encoder <= TINY["encoder_steps"] and decoder <= TINY["decoder_steps"]
     phase1 = {
-        "steps": selection + TINY["encoder_steps"] + TINY["decoder_steps"],
-        "samples": batch * (selection + 2 * TINY["encoder_steps"] + TINY["decoder_steps"]),
+        "steps": selection + encoder + decoder,
+        "samples": batch * (selection + 2 * encoder + decoder),
     }
-    epochs = sum(
-        level["epochs"]
-        for key, level in fitted_family["curriculum_kkl"].log_.items()
-        if key != "spent"
-    )
+
+    def steps(name: str) -> int:  # the steps the trainings of a row's second phase took
+        log = fitted_family[name].fit_report()["training_log"]
+        if "steps" in log:  # one training
+            return log["steps"]
+        return sum(  # the curriculum's levels, the adaptation's rounds
+            value["steps"]
+            for key, value in log.items()
+            if key != "spent" and isinstance(value, dict) and "steps" in value
+        )
+
+    curriculum, adaptation = steps("curriculum_kkl"), steps("injection_kkl")
+    static, dynamic = steps("static_hyperkkl"), steps("dynamic_hyperkkl")
     second = {
         "autonomous_kkl": {"steps": 0, "samples": 0},
         "pure_injection_kkl": {"steps": 0, "samples": 0},
-        "injection_kkl": {"steps": 40, "samples": 40 * 1024},
-        "static_hyperkkl": {"steps": 40, "samples": 40 * 256},  # phase2_batch
-        "dynamic_hyperkkl": {"steps": 40, "samples": 40 * 256},  # 32 windows x 8 points
-        "curriculum_kkl": {"steps": 5 * epochs, "samples": 5 * epochs * 1024},
+        "injection_kkl": {"steps": adaptation, "samples": adaptation * 1024},
+        "static_hyperkkl": {"steps": static, "samples": static * 256},  # phase2_batch
+        "dynamic_hyperkkl": {"steps": dynamic, "samples": dynamic * 256},  # 32 x 8 points
+        "curriculum_kkl": {"steps": curriculum, "samples": curriculum * 1024},
     }
     for name, phase2 in second.items():
         spent = fitted_family[name].fit_report()["spent"]

@@ -7,6 +7,7 @@ import torch
 
 from kkl_bench import convergence
 from kkl_bench.kkl import optimize
+from kkl_bench.kkl.plateau import Plateau, PlateauRule
 from kkl_bench.results import provenance
 
 
@@ -66,7 +67,7 @@ def test_a_resumed_training_counts_the_time_spent_before_the_interruption(tmp_pa
     assert (spent.steps, spent.samples) == (20, 60)
 
 
-def test_the_validation_curve_is_measured_before_training_and_at_every_tenth(tmp_path, clock):
+def test_without_a_rule_the_validation_curve_is_measured_at_every_tenth(tmp_path, clock):
     parameter = torch.nn.Parameter(torch.zeros(1))
     calls = []
 
@@ -90,7 +91,91 @@ def test_the_validation_curve_is_measured_before_training_and_at_every_tenth(tmp
     assert log["converged"] is convergence.converged(training.validation)
 
 
-def test_a_resumed_training_keeps_its_validation_curve(tmp_path, clock):
+RULE = PlateauRule(
+    validate_every=2, plateau_patience=3, plateau_tolerance=0.01, plateau_reductions=2
+)
+
+
+def scripted(errors):
+    """A training of one parameter whose validation errors are ``errors`` in turn; returns
+    the parameter, the value it held at each measurement, and ``minimize``'s loss,
+    parameters and validation."""
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    errors, held = iter(errors), []
+
+    def validation():
+        held.append(parameter.item())
+        return next(errors)
+
+    def loss(step):
+        return ((parameter - 100.0) ** 2).sum()  # moves the parameter at every step
+
+    return parameter, held, (loss, [parameter], validation)
+
+
+def test_a_plateau_lowers_the_rate_then_stops_the_training_and_keeps_the_best():
+    # falls, then flat: three measurements without 1 % progress make a plateau
+    errors = [1.0, 0.5, 0.3, 0.2, 0.2, 0.199, 0.2, 0.198, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2]
+    parameter, held, (loss, parameters, validation) = scripted(errors)
+    training = optimize.minimize(
+        loss, parameters, 1000, 1, lr=0.1, validation=validation, rule=RULE
+    )
+    # measured at steps 0, 2, ..., reductions after the 3rd and 6th measurement without
+    # progress (steps 12 and 18), and the plateau after the second reduction stops it
+    log = training.log()
+    assert [step for step, _ in training.validation] == list(range(0, 26, 2))[:13]
+    assert log["lr_reductions"] == [12, 18] and log["stopped"] == "plateau"
+    assert log["converged"] is True and log["steps"] == 24 == len(training.losses)
+    assert log["best_step"] == 14 and log["best_error"] == 0.198
+    assert parameter.item() == held[7]  # the parameters of the best measurement
+    assert convergence.outcomes(log) == ["yes"]
+
+
+def test_a_rise_restores_the_best_state():
+    errors = [1.0, 0.4, 0.6, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3, 1.4, 1.5]
+    parameter, held, (loss, parameters, validation) = scripted(errors)
+    training = optimize.minimize(
+        loss, parameters, 1000, 1, lr=0.1, validation=validation, rule=RULE
+    )
+    assert training.plateau["best_step"] == 2 and parameter.item() == held[1]
+    assert training.kept_error == 0.4 != training.validation[-1][1]
+
+
+def test_a_curve_still_falling_at_the_cap_says_so():
+    errors = [1.0 * 0.9**k for k in range(11)]
+    parameter, held, (loss, parameters, validation) = scripted(errors)
+    training = optimize.minimize(loss, parameters, 20, 1, lr=0.1, validation=validation, rule=RULE)
+    log = training.log()
+    assert log["stopped"] == "cap" and log["converged"] is False and log["steps"] == 20
+    assert log["best_step"] == 20 and parameter.item() == held[-1]
+    assert convergence.outcomes(log) == ["no"]
+
+
+def test_a_slow_steady_fall_adds_up_to_progress():
+    """0.6 % a measurement never beats the last by 1 %, but beats the last that did."""
+    rule = PlateauRule(validate_every=1, plateau_patience=2, plateau_reductions=0)
+    plateau = Plateau(rule, [])
+    actions = [plateau.measure(step, 0.994**step) for step in range(12)]
+    assert "stop" not in actions and plateau.without_progress <= 1
+
+
+def test_a_validation_error_that_is_not_finite_stops_the_training_as_diverged():
+    parameter, held, (loss, parameters, validation) = scripted([1.0, 0.5, float("nan")])
+    training = optimize.minimize(
+        loss, parameters, 1000, 1, lr=0.1, validation=validation, rule=RULE
+    )
+    assert training.plateau["stopped"] == "diverged" and parameter.item() == held[1]
+    assert convergence.outcomes(training.log()) == ["diverged"]
+
+
+def test_a_rule_needs_a_validation_error():
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    with pytest.raises(ValueError, match="needs a validation error"):
+        optimize.minimize(lambda step: parameter.sum(), [parameter], 10, 1, rule=RULE)
+
+
+@pytest.mark.parametrize("rule", [None, RULE], ids=["cosine", "plateau"])
+def test_a_resumed_training_keeps_its_validation_curve(tmp_path, clock, rule):
     def run(interrupt_at=None):
         parameter = torch.nn.Parameter(torch.zeros(1))
 
@@ -100,15 +185,24 @@ def test_a_resumed_training_keeps_its_validation_curve(tmp_path, clock):
             return ((parameter - 1.0) ** 2).sum()
 
         generator = torch.Generator().manual_seed(0)
-        with optimize.resumable(tmp_path, {"kind": "curve"}, [generator], every=4):
-            return optimize.minimize(
-                loss, [parameter], 10, 1, lr=0.1, validation=lambda: float(parameter.item())
+        with optimize.resumable(tmp_path / str(rule), {"kind": "curve"}, [generator], every=4):
+            training = optimize.minimize(
+                loss,
+                [parameter],
+                40,
+                1,
+                lr=0.1,
+                validation=lambda: round(abs(1.0 - parameter.item()), 2),
+                rule=rule,
             )
+        return training, parameter.item()
 
     whole = run()
     with pytest.raises(Interrupted):
         run(interrupt_at=6)  # checkpoint at step 4
-    assert run().validation == whole.validation
+    resumed = run()
+    assert resumed[0].validation == whole[0].validation and resumed[1] == whole[1]
+    assert resumed[0].plateau == whole[0].plateau
 
 
 @pytest.mark.parametrize(

@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from kkl_bench.cli import admin, publishing, run, tables, verify
+from kkl_bench.cli import admin, publishing, regenerate, run, tables, verify
 from kkl_bench.registry import PluginLoadError, UnknownNameError
 from kkl_bench.task import ProfileError
 
@@ -37,9 +37,10 @@ examples:
   kkl-bench cache info
   kkl-bench check my_estimator --system duffing lorenz
   kkl-bench verify --sample 8
+  kkl-bench regenerate --into regenerated --dry-run
 """
 
-COMMANDS = (admin, run, tables, publishing, verify)
+COMMANDS = (admin, run, regenerate, tables, publishing, verify)
 """The modules that declare the subcommands (``add_parser``), in the order help lists them."""
 
 

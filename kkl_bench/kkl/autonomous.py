@@ -6,11 +6,19 @@
 2. Train the encoder ``T`` on settled pairs ``(x, z)`` plus ``pde_weight``
    times the autonomous PDE residual ``dT/dx f - A T - B h`` at jittered
    states (JVP; residual in normalized latent units, divided by the RMS
-   normalized vector field).
+   normalized vector field), validated by the same loss on the settled
+   states of the validation trajectories.
 3. Freeze ``T``; train the decoder ``T*`` on the observer's own latent states
    over the scored window: what it sees at test time. (Adding pairs
    ``(T(x), x)`` at the collocation states, as earlier versions did, changed
-   validation RMSE by under 2 % on Duffing; they are gone.)
+   validation RMSE by under 2 % on Duffing; they are gone.) It is validated on
+   unforced and forced validation trajectories alike (its RMSE over both): the
+   rows built on it are scored under inputs, and a decoder chosen on unforced
+   trajectories alone got worse under inputs as it trained longer.
+
+Both trainings end by the plateau rule (:mod:`kkl_bench.kkl.plateau`) and keep
+their best state on validation; the brief trainings of step 1 only compare the
+candidates and run a fixed number of steps.
 
 The result is cached under a key of everything that determines it, so the
 four KKL plugins (and reruns) share one Phase-1 model per system and seed.
@@ -47,11 +55,12 @@ from kkl_bench.kkl.latent import (
 from kkl_bench.kkl.networks import NormalizedMLP, seeded
 from kkl_bench.kkl.optimize import Training, counting, minimize, resumable
 from kkl_bench.kkl.pde import normalized_field_rms, pde_residual
+from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.signals import InputFamily
 from kkl_bench.registry import regimes
 
-TOOLKIT_VERSION = 5
+TOOLKIT_VERSION = 6
 """Bump when a change to this module changes what a given configuration trains."""
 
 RATE_CANDIDATES = ((1.0, 5.0), (2.0, 10.0), (5.0, 20.0), (10.0, 40.0))
@@ -99,8 +108,7 @@ class AutonomousModel:
     spent: dict[str, int] = field(default_factory=dict)
     """Optimizer steps and samples Phase 1 took (rate selection, encoder, decoder)."""
     training_log: dict = field(default_factory=dict)
-    """The decoder's training log with its validation curve (empty for a model cached
-    before curves were recorded)."""
+    """The encoder's and the decoder's training logs with their validation curves."""
 
     def report(self) -> dict:
         """What a KKL plugin records with its results: toolkit version, rates, their
@@ -197,10 +205,12 @@ def train_decoder(
     generator: torch.Generator,
     description: str,
     validation: tuple[torch.Tensor, np.ndarray] | None = None,
+    rule: PlateauRule | None = None,
 ) -> Training:
     """Fit ``decoder`` to pairs ``z: (n, n_z) -> x: (n, n_x)`` in normalized state units;
     with ``validation = (z_val, x_val)`` (a tensor and an array), record its RMSE on them
-    (state units) as it goes."""
+    (state units) as it goes and, with a ``rule``, end by the plateau rule at most
+    ``steps`` steps in; without, run ``steps`` steps."""
 
     def loss(_):
         rows = draw_integers(len(z), (batch,), generator)
@@ -208,7 +218,13 @@ def train_decoder(
 
     error = None if validation is None else decoder_rmse(decoder, *validation)
     return minimize(
-        loss, decoder.parameters(), steps, batch, description=description, validation=error
+        loss,
+        decoder.parameters(),
+        steps,
+        batch,
+        description=description,
+        validation=error,
+        rule=rule,
     )
 
 
@@ -270,47 +286,72 @@ def _select_rates(
     return best[1], scores, best[2]
 
 
+VALIDATION_STATES = 8192
+"""Settled validation states the encoder's validation loss is evaluated at (at most,
+evenly spaced over all of them)."""
+
+
 def _train_encoder(
     context: FitContext,
     config: Phase1Config,
+    rule: PlateauRule,
     encoder: NormalizedMLP,
     data: ObserverData,
+    validation: ObserverData,
     rates: np.ndarray,
     generator: torch.Generator,
-) -> None:
-    """Fit ``T`` to settled pairs plus the PDE at jittered settled states."""
+) -> Training:
+    """Fit ``T`` to settled pairs plus the PDE at jittered settled states; its validation
+    error is the same loss at the settled states of the ``validation`` trajectories
+    (:data:`VALIDATION_STATES` of them, not jittered)."""
     system = context.system
-    x, z = (_tensor(a) for a in data.settled(burn_in_steps(rates, context.dt)))
+    burn_in = burn_in_steps(rates, context.dt)
+    x, z = (_tensor(a) for a in data.settled(burn_in))
     encoder.set_normalization(x, z)
     a, b = (_tensor(m) for m in latent_matrices(rates, system.n_y))
     collocation = x + config.jitter * x.std(0) * draw_normal(x.shape, generator, x)
-    vector_field = system.f(collocation)
-    h_collocation = system.h(collocation)
+    vector_field, h_collocation = system.f(collocation), system.h(collocation)
     field_scale = normalized_field_rms(encoder, vector_field)
 
-    def loss(_):
-        rows = draw_integers(len(x), (config.batch,), generator)
-        data_term = encoder.output_difference(encoder(x[rows]) - z[rows]).pow(2).sum(-1).mean()
-        points = draw_integers(len(collocation), (config.batch,), generator)
-        residual = pde_residual(
-            encoder, collocation[points], vector_field[points], h_collocation[points], a, b
-        )
+    def pairs_loss(x, z, states, field, h):
+        """The data term on pairs ``(x, z)`` plus the weighted PDE residual at ``states``
+        (where the vector field is ``field`` and the output ``h``)."""
+        data_term = encoder.output_difference(encoder(x) - z).pow(2).sum(-1).mean()
+        residual = pde_residual(encoder, states, field, h, a, b)
         normalized = encoder.output_difference(residual) / field_scale
         return data_term + config.pde_weight * normalized.pow(2).sum(-1).mean()
 
-    minimize(  # each step draws `batch` data pairs and `batch` collocation points
+    def loss(_):
+        rows = draw_integers(len(x), (config.batch,), generator)
+        points = draw_integers(len(collocation), (config.batch,), generator)
+        return pairs_loss(
+            x[rows], z[rows], collocation[points], vector_field[points], h_collocation[points]
+        )
+
+    x_val, z_val = (_tensor(a).to(x.device) for a in validation.settled(burn_in))
+    every = max(1, len(x_val) // VALIDATION_STATES)
+    x_val, z_val = x_val[::every][:VALIDATION_STATES], z_val[::every][:VALIDATION_STATES]
+    at_validation = (x_val, system.f(x_val), system.h(x_val))
+
+    def validation_loss() -> float:
+        with torch.no_grad():
+            return float(pairs_loss(x_val, z_val, *at_validation))
+
+    return minimize(  # each step draws `batch` data pairs and `batch` collocation points
         loss,
         encoder.parameters(),
         config.encoder_steps,
         2 * config.batch,
         description=f"{system.name}: encoder T",
+        validation=validation_loss,
+        rule=rule,
     )
-    return collocation
 
 
 def _train_phase1(
     context: FitContext,
     config: Phase1Config,
+    rule: PlateauRule,
     encoder: NormalizedMLP,
     decoder: NormalizedMLP,
     generator: torch.Generator,
@@ -318,9 +359,10 @@ def _train_phase1(
     """Choose the latent rates, then train ``encoder`` and ``decoder`` in place; every
     random draw of the training comes from ``generator``.
 
-    Returns the rates, the validation score of each candidate range and the decoder's
-    training log (its validation curve: RMSE on the rate selection's validation
-    trajectories, observed with the chosen rates).
+    Returns the rates, the validation score of each candidate range and the encoder's
+    and decoder's training logs (the decoder's validation curve: RMSE on the rate
+    selection's unforced validation trajectories and as many forced ones, observed with
+    the chosen rates).
     """
     system = context.system
     unforced = regimes.get("zero")()
@@ -330,10 +372,15 @@ def _train_phase1(
     data = observer_data(
         context, observer, unforced, config.train_trajectories, "kkl/phase1", boxes
     )
-    _train_encoder(context, config, encoder, data, rates, generator)
+    encoding = _train_encoder(context, config, rule, encoder, data, validation, rates, generator)
     x, z = (_tensor(a) for a in data.scored())
     decoder.set_normalization(z, x)
-    x_val, z_val = validation.scored()
+    forced = observer_data(
+        context, observer, FORCED_TRAINING, len(validation.x), "kkl/validation/forced"
+    )
+    x_val, z_val = (
+        np.concatenate(pair) for pair in zip(validation.scored(), forced.scored(), strict=True)
+    )
     training = train_decoder(
         decoder,
         z,
@@ -343,13 +390,18 @@ def _train_phase1(
         generator,
         f"{system.name}: decoder T*",
         validation=(_tensor(z_val).to(z.device), x_val),
+        rule=rule,
     )
-    return rates, selection, {"decoder": training.log()}
+    return rates, selection, {"encoder": encoding.log(), "decoder": training.log()}
 
 
-def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel:
-    """Train (or load from the cache) the Phase-1 model for ``context.system``."""
+def fit_autonomous(
+    context: FitContext, config: Phase1Config, rule: PlateauRule | None = None
+) -> AutonomousModel:
+    """Train (or load from the cache) the Phase-1 model for ``context.system``; its
+    trainings end by ``rule`` (default: the profile's, :func:`from_budget`)."""
     system = context.system
+    rule = rule or from_budget(PlateauRule, context)
     description = {
         "kind": "kkl-phase1",
         "toolkit": TOOLKIT_VERSION,
@@ -358,6 +410,7 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
         "system_params": system.params(),
         "seed": context.seed,
         "config": asdict(config),
+        "plateau": asdict(rule),
         **context.measurement.cache_entry(),
     }
     cache = CheckpointCache(context.cache_dir)
@@ -373,7 +426,7 @@ def fit_autonomous(context: FitContext, config: Phase1Config) -> AutonomousModel
                     training_on(context.device, encoder, decoder) as spending.device,
                 ):
                     rates, selection, log = _train_phase1(
-                        context, config, encoder, decoder, generator
+                        context, config, rule, encoder, decoder, generator
                     )
                 stored = {
                     "encoder": encoder.state_dict(),

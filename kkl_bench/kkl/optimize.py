@@ -1,11 +1,14 @@
-"""One Adam loop for every KKL training phase: clipping, cosine schedule, progress bar,
+"""One Adam loop for every learned training: clipping, the plateau rule, progress bar,
 a ledger of the optimizer steps and samples every training spends, a validation curve,
 and resumable checkpoints for long trainings.
 
 A training given a validation error (an RMSE on validation trajectories of a
-training stream, or its loss on held-out samples) measures it before the first
-step and :data:`VALIDATION_POINTS` times along the way; :func:`converged` reads the
-curve (the rule is protocol section 6.5's).
+training stream, or its loss on held-out samples) and a
+:class:`~kkl_bench.kkl.plateau.PlateauRule` measures the error before the first step
+and every ``validate_every`` steps, lowers its learning rate on each plateau, stops on
+the last one (or at its cap of steps) and ends with the parameters of its best
+measurement (protocol section 6.5). Without a rule (a brief training that only
+compares candidates) it runs its steps under a cosine schedule.
 
 Inside a :func:`resumable` block every :func:`minimize` call is numbered and
 writes its state (parameters, optimizer, schedule, losses, the block's random
@@ -34,6 +37,7 @@ from tqdm import tqdm
 from kkl_bench import flops, status
 from kkl_bench.convergence import converged
 from kkl_bench.kkl.cache import CheckpointCache
+from kkl_bench.kkl.plateau import PLATEAU, Plateau, PlateauRule
 from kkl_bench.results import provenance
 
 RESUME_KIND = "kkl-resume"
@@ -74,25 +78,42 @@ class Spent:
 
 
 VALIDATION_POINTS = 10
-"""Validation errors measured along a training, besides the one before its first step."""
+"""Validation errors measured along a training without a plateau rule, besides the one
+before its first step."""
 
 
 @dataclass
 class Training:
-    """What one :func:`minimize` call did: the loss of every step and, if it was given a
-    validation error, ``validation``: ``(step, error)`` pairs, step 0 before training."""
+    """What one :func:`minimize` call did: the loss of every step; if it was given a
+    validation error, ``validation``: ``(step, error)`` pairs, step 0 before training;
+    under a plateau rule, ``plateau``: :meth:`Plateau.log` (why it stopped, the step of
+    the parameters kept)."""
 
     losses: list[float]
     validation: list[tuple[int, float]] = field(default_factory=list)
+    plateau: dict[str, Any] | None = None
+
+    @property
+    def kept_error(self) -> float:
+        """The validation error of the parameters the training ended with: the best
+        measurement's under a plateau rule, else the last."""
+        return self.plateau["best_error"] if self.plateau else self.validation[-1][1]
 
     def log(self, last: int = 50) -> dict[str, Any]:
-        """The training log a fit report records: the mean loss of the ``last`` steps and,
-        with a validation curve, the curve and whether it :func:`converged`."""
+        """The training log a fit report records: the steps run, the mean loss of the
+        ``last`` steps and, with a validation curve, the curve, the plateau rule's record
+        and whether the training converged (stopped by the plateau; without a rule,
+        :func:`~kkl_bench.convergence.converged` on the curve)."""
         log: dict[str, Any] = {
-            "final_loss": float(sum(self.losses[-last:]) / len(self.losses[-last:]))
+            "steps": len(self.losses),
+            "final_loss": float(sum(self.losses[-last:]) / len(self.losses[-last:])),
         }
         if self.validation:
             log["validation_curve"] = [[step, error] for step, error in self.validation]
+        if self.plateau is not None:
+            log.update(self.plateau)
+            log["converged"] = self.plateau["stopped"] == PLATEAU
+        elif self.validation:
             log["converged"] = converged(self.validation)
         return log
 
@@ -221,14 +242,16 @@ def resumable(
         resume.cache.remove(RESUME_KIND, written)
 
 
-def _adam_step(loss_fn, step, parameters, optimizer, schedule) -> float:
-    """One optimizer step of :func:`minimize` on ``loss_fn(step)``; returns the loss."""
+def _adam_step(loss_fn, step, parameters, optimizer, schedule=None) -> float:
+    """One optimizer step of :func:`minimize` on ``loss_fn(step)`` (then one step of a
+    cosine ``schedule``, if given); returns the loss."""
     optimizer.zero_grad(set_to_none=True)
     loss = loss_fn(step)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(parameters, 1.0)
     optimizer.step()
-    schedule.step()
+    if schedule is not None:
+        schedule.step()
     return loss.item()
 
 
@@ -298,23 +321,36 @@ def minimize(
     lr: float = 1e-3,
     description: str = "training",
     validation: Callable[[], float] | None = None,
+    rule: PlateauRule | None = None,
 ) -> Training:
-    """Run ``steps`` Adam steps on ``loss_fn(step)``; returns the loss of every step and the
-    validation curve.
+    """Adam on ``loss_fn(step)`` for at most ``steps`` steps; returns the loss of every
+    step and the validation curve.
 
-    ``samples_per_step`` is how many training samples one ``loss_fn`` call
-    draws; with the steps it is recorded in every open :func:`counting`
-    block. Gradients are clipped to norm 1 and the learning rate decays along
-    a cosine to 1 % of ``lr``. ``validation()``, if given, returns the current
-    validation error; it is measured before the first step and every
-    ``ceil(steps / VALIDATION_POINTS)`` steps (and after the last), and must draw from
-    no generator the training draws from.
+    ``samples_per_step`` is how many training samples one ``loss_fn`` call draws; with
+    the steps run it is recorded in every open :func:`counting` block. Gradients are
+    clipped to norm 1. ``validation()`` returns the current validation error and must
+    draw from no generator the training draws from.
+
+    With a plateau ``rule`` (which needs ``validation``) the learning rate starts at
+    ``lr`` and the rule decides (:class:`~kkl_bench.kkl.plateau.Plateau`): the error is
+    measured before the first step and every ``rule.validate_every`` steps, ``steps`` is
+    the cap, and the parameters end at the best measurement. Without one the rate decays
+    along a cosine to 1 % of ``lr`` over exactly ``steps`` steps, the error (if given) is
+    measured every ``ceil(steps / VALIDATION_POINTS)`` steps, and the parameters are the
+    last step's.
     """
+    if rule is not None and validation is None:
+        raise ValueError(f"{description}: a plateau rule needs a validation error")
     parameters = [p for p in parameters if p.requires_grad]
     optimizer = torch.optim.Adam(parameters, lr=lr)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
-        optimizer, max(steps, 1), eta_min=0.01 * lr
-    )
+    schedule = plateau = None
+    if rule is None:
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+            optimizer, max(steps, 1), eta_min=0.01 * lr
+        )
+        every = math.ceil(steps / VALIDATION_POINTS) if steps else 1
+    else:
+        plateau, every = Plateau(rule, parameters, optimizer), rule.validate_every
     probe = _PROBE.get()
     if probe is not None:
         return probe.measure(
@@ -325,23 +361,41 @@ def minimize(
     checkpoint = resume.next_call() if resume else None
     start, training = (0, Training([]))
     if resume:
-        start, training = resume.restore(checkpoint, parameters, optimizer, schedule)
-    every = math.ceil(steps / VALIDATION_POINTS) if steps else 1
+        start, training = resume.restore(checkpoint, parameters, optimizer, schedule or plateau)
     if validation is not None and start == 0:
-        training.validation.append((0, float(validation())))
+        _measure(training, 0, validation, plateau)
     with tqdm(
-        range(start, steps), desc=description, leave=False, disable=None, mininterval=1.0
+        total=steps, initial=start, desc=description, leave=False, disable=None, mininterval=1.0
     ) as bar:
-        for step in bar:
+        step = start
+        while step < steps and not (plateau and plateau.stopped):
             training.losses.append(_adam_step(loss_fn, step, parameters, optimizer, schedule))
-            if step % 100 == 0:
+            step += 1
+            bar.update()
+            if step % 100 == 1:
                 bar.set_postfix(loss=f"{training.losses[-1]:.3g}")
-            status.step(description, step + 1, steps)
-            if validation is not None and ((step + 1) % every == 0 or step + 1 == steps):
-                training.validation.append((step + 1, float(validation())))
-            if resume and ((step + 1) % resume.every == 0 or step + 1 == steps):
-                resume.save(checkpoint, step + 1, parameters, optimizer, schedule, training)
+            status.step(description, step, steps)
+            if validation is not None and (step % every == 0 or step == steps):
+                _measure(training, step, validation, plateau)
+            done = step == steps or (plateau and plateau.stopped)
+            if resume and (step % resume.every == 0 or done):
+                resume.save(checkpoint, step, parameters, optimizer, schedule or plateau, training)
+    if plateau:
+        plateau.reach_cap()
+        plateau.restore_best()
+        training.plateau = plateau.log()
     for spent in _LEDGERS.get():
-        spent.steps += steps
-        spent.samples += steps * samples_per_step
+        spent.steps += len(training.losses)
+        spent.samples += len(training.losses) * samples_per_step
     return training
+
+
+def _measure(
+    training: Training, step: int, validation: Callable[[], float], plateau: Plateau | None
+) -> None:
+    """Append the validation error after ``step`` steps to the curve and let the
+    ``plateau`` rule, if any, act on it."""
+    error = float(validation())
+    training.validation.append((step, error))
+    if plateau is not None:
+        plateau.measure(step, error)

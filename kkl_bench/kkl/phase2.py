@@ -24,6 +24,7 @@ from kkl_bench.kkl.data import ObserverData, observer_data, validation_count
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
 from kkl_bench.kkl.optimize import counting, resumable
+from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.kkl.windows import sliding_windows
 from kkl_bench.protocol.metrics import steady_state_start
 
@@ -93,8 +94,10 @@ class ForcedSamples:
         return self._tensors[name]
 
 
-VALIDATION_BATCHES = 4
-"""Batches of held-out samples a Phase-2 validation loss averages (:func:`held_out_loss`)."""
+VALIDATION_BATCHES = 16
+"""Batches of held-out samples a Phase-2 validation loss averages (:func:`held_out_loss`):
+enough that the best of a training's measurements is a choice among models, not among
+draws of a few batches."""
 
 
 def held_out_loss(
@@ -115,10 +118,17 @@ def held_out_loss(
 
 
 def phase2_description(
-    model: AutonomousModel, kind: str, config: Any, params: dict[str, Any]
+    model: AutonomousModel, kind: str, config: Any, params: dict[str, Any], rule: PlateauRule
 ) -> dict[str, Any]:
-    """The cache description of a Phase-2 model (``config``: its budget dataclass) on ``model``."""
-    return {"kind": kind, "phase1": model.description, "config": asdict(config), "params": params}
+    """The cache description of a Phase-2 model (``config``: its budget dataclass) on
+    ``model``, trained under the plateau ``rule``."""
+    return {
+        "kind": kind,
+        "phase1": model.description,
+        "config": asdict(config),
+        "params": params,
+        "plateau": asdict(rule),
+    }
 
 
 def fit_phase2(
@@ -128,26 +138,29 @@ def fit_phase2(
     pde_weight: float,
     build: Callable[[AutonomousModel, Phase2Config], nn.Module],
     train: Callable[
-        [FitContext, AutonomousModel, Phase2Config, nn.Module, torch.Generator], dict[str, Any]
+        [FitContext, AutonomousModel, Phase2Config, nn.Module, PlateauRule, torch.Generator],
+        dict[str, Any],
     ],
 ) -> tuple[AutonomousModel, Phase2Config, nn.Module, dict[str, Any]]:
     """Phase 1 (shared, cached), then a Phase-2 module built and trained on it (cached).
 
     ``build(model, config)`` makes the module (under the run's seed);
-    ``train(context, model, config, module, generator)`` trains it, drawing from
-    ``generator`` only (see :func:`load_or_train`), and returns a log.
+    ``train(context, model, config, module, rule, generator)`` trains it under the
+    profile's plateau ``rule``, drawing from ``generator`` only (see
+    :func:`load_or_train`), and returns a log.
     Returns the Phase-1 model, the Phase-2 config, the module and the log.
     """
     model = fit_phase1(context, pde_weight)
     config = from_budget(Phase2Config, context)
+    rule = from_budget(PlateauRule, context)
     with seeded(context.seed):
         module = build(model, config)
-    description = phase2_description(model, kind, config, params)
+    description = phase2_description(model, kind, config, params, rule)
     log = load_or_train(
         context,
         description,
         module,
-        lambda generator: train(context, model, config, module, generator),
+        lambda generator: train(context, model, config, module, rule, generator),
         uses=(model.encoder, model.decoder),
     )
     return model, config, module, log

@@ -36,6 +36,7 @@ from kkl_bench.kkl.gain import simulate_families
 from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.optimize import Training, minimize
 from kkl_bench.kkl.phase2 import load_or_train
+from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.measurement import held
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.metrics import rmse
@@ -51,9 +52,12 @@ class RecurrentConfig:
     rnn_layers: int = 2
     rnn_trajectories: int = 128
     """Training trajectories of each kind (unforced, forced)."""
-    rnn_validation: int = 16
-    """Validation trajectories of each kind (a separate training stream)."""
-    rnn_steps: int = 4000
+    rnn_validation: int = 32
+    """Validation trajectories of each kind (a separate training stream). The error of a
+    recurrent network moves by up to a fifth between two measurements 200 steps apart;
+    more trajectories make the best of them less a matter of luck."""
+    rnn_steps: int = 16000
+    """The cap of Adam steps (the plateau rule ends the training)."""
     rnn_batch: int = 32
     rnn_window: int = 200
     """Samples one step backpropagates through."""
@@ -65,6 +69,7 @@ class LoggedTuningConfig:
     """The fine-tuning budget on a true plant's logged data (``mismatch`` track only)."""
 
     rnn_logged_steps: int = 1000
+    """The cap of the fine-tuning's Adam steps."""
     rnn_logged_lr: float = 1e-3
 
 
@@ -99,10 +104,12 @@ def train_windows(
     config: RecurrentConfig,
     seed: int,
     label: str,
-    validation: Callable[[], float] | None = None,
+    validation: Callable[[], float],
+    rule: PlateauRule,
 ) -> Training:
-    """Truncated BPTT over ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)``, with
-    ``validation()`` the validation error :func:`~kkl_bench.kkl.optimize.minimize` records.
+    """Truncated BPTT over ``yu: (n, steps, n_in)`` against ``x: (n, steps, n_x)`` for at
+    most ``config.rnn_steps`` steps, ended by the plateau ``rule`` on ``validation()``
+    (:func:`~kkl_bench.kkl.optimize.minimize`).
 
     Training runs in sweeps: a sweep draws ``rnn_batch`` trajectories
     (a function of ``seed`` and the sweep's number only) and walks them from
@@ -141,12 +148,16 @@ def train_windows(
         lr=config.rnn_lr,
         description=label,
         validation=validation,
+        rule=rule,
     )
 
 
-def _train_nominal(context: FitContext, network: nn.Module, config, description) -> dict:
+def _train_nominal(
+    context: FitContext, network: nn.Module, config, rule: PlateauRule, description
+) -> dict:
     """Train ``network`` on the training families; the training log with its validation
-    curve (RMSE on validation trajectories of their own stream) and final RMSE."""
+    curve (RMSE on validation trajectories of their own stream) and the RMSE of the state
+    kept."""
     families = {"unforced": regimes.get("zero")(), "forced": FORCED_TRAINING}
     x, y, u = simulate_families(context, families, config.rnn_trajectories, "rnn/train")
     yu, x = inputs(y, u, network.observed_channel), torch.as_tensor(x, dtype=torch.float32)
@@ -162,8 +173,9 @@ def _train_nominal(context: FitContext, network: nn.Module, config, description)
         context.seed,
         f"{context.system.name}: {description['kind']}",
         lambda: _validation_rmse(network, y_val, u_val, x_val),
+        rule,
     )
-    return {**training.log(last=100), "validation_rmse": training.validation[-1][1]}
+    return {**training.log(last=100), "validation_rmse": training.kept_error}
 
 
 def _validation_rmse(network: nn.Module, y, u, x) -> float:
@@ -178,10 +190,12 @@ def _fine_tune(
     network: nn.Module,
     config: RecurrentConfig,
     budget: LoggedTuningConfig,
+    rule: PlateauRule,
     description: dict[str, Any],
 ) -> dict:
-    """Fine-tune ``network`` on the logged data with ``budget``'s steps and learning rate;
-    keep it only if the held-out RMSE improves."""
+    """Fine-tune ``network`` on the logged data with ``budget``'s cap and learning rate,
+    under the plateau ``rule`` on the held-out logged trajectories; keep it only if their
+    RMSE improves."""
     logged = context.logged_data
     held_out = np.arange(len(logged)) % HELD_OUT_EVERY == HELD_OUT_EVERY - 1
     before = _validation_rmse(network, logged.y[held_out], logged.u[held_out], logged.x[held_out])
@@ -198,8 +212,9 @@ def _fine_tune(
         lambda: _validation_rmse(
             network, logged.y[held_out], logged.u[held_out], logged.x[held_out]
         ),
+        rule,
     )
-    after = training.validation[-1][1]
+    after = training.kept_error
     if after >= before:
         network.load_state_dict(nominal)
     return {
@@ -231,12 +246,18 @@ def fit_sequence_model(
     families, then, if the context has logged data, fine-tune it on them (cached under
     ``description`` plus their fingerprint). Returns the fit report: the training log
     (and the fine-tuning's), with the optimizer steps and samples each spent."""
-    description = {**description, "config": asdict(config), **context.measurement.cache_entry()}
+    rule = from_budget(PlateauRule, context)
+    description = {
+        **description,
+        "config": asdict(config),
+        "plateau": asdict(rule),
+        **context.measurement.cache_entry(),
+    }
     log = load_or_train(
         context,
         description,
         network,
-        lambda _: _train_nominal(context, network, config, description),
+        lambda _: _train_nominal(context, network, config, rule, description),
     )
     # no Phase 1: the network's own training is its second phase in the cost table
     report = {"training_log": log, "spent": {"phase2": log["spent"]}}
@@ -248,7 +269,10 @@ def fit_sequence_model(
             "tuning": asdict(budget),
         }
         logged = load_or_train(
-            context, tuning, network, lambda _: _fine_tune(context, network, config, budget, tuning)
+            context,
+            tuning,
+            network,
+            lambda _: _fine_tune(context, network, config, budget, rule, tuning),
         )
         report["logged_data_log"] = logged
         report["spent"]["logged_data"] = logged["spent"]

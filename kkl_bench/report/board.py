@@ -62,7 +62,9 @@ class Board:
     its ``cost.csv``, if any; verifications: the rows of its ``verification.csv``
     (:mod:`kkl_bench.verification`), if any; scaling_panel: the scaling study's panel
     (:func:`kkl_bench.report.scaling.study_panel`), if the folder holds the study;
-    every_cell: the cells of every track (what the Reproduce section reads).
+    every_cell: the cells of every track (what the Reproduce section reads); regeneration:
+    the summary of the results folder's regeneration ledger
+    (:func:`kkl_bench.regenerate.ledger_summary`), if one wrote it.
     """
 
     summary: pd.DataFrame
@@ -80,6 +82,7 @@ class Board:
     verifications: pd.DataFrame | None = None
     scaling_panel: Section | None = None
     every_cell: pd.DataFrame | None = None
+    regeneration: dict | None = None
 
 
 SMOKE_BANNER = (

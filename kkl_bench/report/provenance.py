@@ -191,6 +191,24 @@ def _versions(results: pd.DataFrame) -> dict[str, list[str]]:
     return {key: sorted(values) for key, values in facts.items()}
 
 
+def regeneration_sentence(summary: dict | None) -> str:
+    """What the Reproduce section says of the ``kkl-bench regenerate`` runs that wrote the
+    results (:func:`kkl_bench.regenerate.ledger_summary` of their ledger)."""
+    if summary is None:
+        return (
+            "These results were not written by `kkl-bench regenerate` (their folder holds no "
+            "ledger of one): the core-hours they took are not recorded."
+        )
+    commits = ", ".join(summary["commits"])
+    return (
+        f"Written by `kkl-bench regenerate`: {summary['jobs']} fits making "
+        f"{summary['cells']} cells in **{summary['core_hours']:.1f} core-hours** measured "
+        f"(one thread a fit; {summary['estimated_core_hours']:.1f} estimated beforehand), "
+        f"at commit{'s' if len(summary['commits']) > 1 else ''} {commits}, the fits "
+        f"finishing between {summary['from']} and {summary['to']}."
+    )
+
+
 def provenance_sections(board: Board) -> list[Section]:
     seeds = ", ".join(map(str, sorted(set(board.results["seed"]))))
     facts = [("seeds", seeds)] + [
@@ -238,6 +256,12 @@ def provenance_sections(board: Board) -> list[Section]:
         Section("Provenance", [Table(versions, id="provenance")]),
         Section(
             "Reproduce",
-            [Text(RUNS_TEXT), Table(board.runs, RUN_COLUMNS, id="runs"), *listed, *checked],
+            [
+                Text(regeneration_sentence(board.regeneration)),
+                Text(RUNS_TEXT),
+                Table(board.runs, RUN_COLUMNS, id="runs"),
+                *listed,
+                *checked,
+            ],
         ),
     ]

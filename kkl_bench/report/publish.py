@@ -35,6 +35,7 @@ from kkl_bench import figures
 from kkl_bench.cache import imported_code_digest
 from kkl_bench.cost import COST_FILE, read_costs, with_measured_costs
 from kkl_bench.leaderboard import render
+from kkl_bench.ledger import ledger_summary, read_ledger
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report import html, markdown
 from kkl_bench.report.board import Board, TrackTables, introduction, paper_sections, reading_guide
@@ -138,6 +139,7 @@ def publish(
         verifications=read_verifications(out / VERIFICATION_FILE),
         scaling_panel=study_panel(out, profile),
         every_cell=results,
+        regeneration=ledger_summary(read_ledger(results_dir)),
     )
     parts = sections(board)
     written = {

@@ -1,0 +1,115 @@
+"""``kkl-bench regenerate``: compute a published board's cells again, resumably, with
+its plan and estimated core-hours said first and an ETA counted in work."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from kkl_bench import ledger, regenerate
+from kkl_bench.cache import default_cache_dir
+from kkl_bench.cli.common import add_cache_argument, add_jobs_argument
+from kkl_bench.cli.run import RESUME, showing_jobs
+from kkl_bench.executors import EXECUTORS
+from kkl_bench.results import load_results, provenance
+from kkl_bench.task import get_profile
+
+
+def add_parser(commands) -> None:
+    parser = commands.add_parser(
+        "regenerate",
+        help="compute every cell of a results folder again (resumable), into another folder",
+        description="Plan the fits that make every cell of --from (one profile; narrowed by "
+        "--estimator, --track, --system), print the plan and its estimated core-hours, then "
+        "compute the cells into --into, each row as `kkl-bench run` of that row makes it. "
+        "Rerun the same command to resume: finished cells are skipped and a killed training "
+        f"continues from its checkpoint. Each fit's wall time goes to --into/"
+        f"{ledger.LEDGER_FILE}; `kkl-bench publish --results INTO` states the core-hours.",
+    )
+    parser.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        default=Path("leaderboard/results"),
+        metavar="DIR",
+        help="the results whose cells are regenerated (default leaderboard/results); never written",
+    )
+    parser.add_argument(
+        "--into", type=Path, required=True, metavar="DIR", help="where the new cells go"
+    )
+    parser.add_argument("--profile", default="standard", help="profile (default standard)")
+    parser.add_argument("--estimator", nargs="+", metavar="ROW", help="rows (default: all)")
+    parser.add_argument("--track", nargs="+", metavar="NAME", help="tracks (default: all)")
+    parser.add_argument("--system", nargs="+", metavar="NAME", help="systems (default: all)")
+    parser.add_argument(
+        "--dry-run", action="store_true", help="print the plan and its estimate, run nothing"
+    )
+    add_cache_argument(parser)
+    add_jobs_argument(parser, "fits")
+    parser.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="loky",
+        help="loky: local worker processes (default); dask: a Dask cluster (see --scheduler)",
+    )
+    parser.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address")
+    parser.set_defaults(handler=regenerate_command)
+
+
+def regenerate_command(args: argparse.Namespace) -> int:
+    if args.into.resolve() == args.source.resolve():
+        raise ValueError(
+            f"--into {args.into} is the source folder: regenerate into another folder, then "
+            "publish from it"
+        )
+    profile = get_profile(args.profile)
+    source = regenerate.select(load_results(args.source), args.estimator, args.track, args.system)
+    if source.empty:
+        raise ValueError(f"{args.source} holds no cells of the selection")
+    commit = provenance()["git_commit"]
+    if commit is None or commit.endswith("-dirty"):
+        print(
+            f"kkl-bench: the code is not a clean commit ({commit}): a regenerated board "
+            "should come from one",
+            file=sys.stderr,
+        )
+    planned = regenerate.plan(
+        source, profile, args.into, args.cache or default_cache_dir(), args.command_line
+    )
+    print(planned.describe())
+    if args.dry_run or not planned.jobs:
+        return 0
+    failed = 0
+    with (
+        tqdm(
+            total=round(planned.estimate_s),
+            unit="s",
+            desc="regenerate (estimated work)",
+            dynamic_ncols=True,
+            mininterval=1.0,
+        ) as bar,
+        showing_jobs(bar, args.into / ".claims" / profile.name),
+    ):
+
+        def progress(planned_job, outcome):
+            nonlocal failed
+            failed += sum(cell.status == "error" for cell in outcome.scored)
+            bar.update(round(planned_job.estimate_s))
+
+        try:
+            written = regenerate.run(
+                planned, args.into, progress, args.jobs, args.executor, args.scheduler
+            )
+        except KeyboardInterrupt:
+            print(f"kkl-bench: interrupted; {RESUME}", file=sys.stderr)
+            return 130
+    summary = ledger.ledger_summary(written)
+    print(
+        f"{summary['cells']} cells in {summary['jobs']} fits, {summary['core_hours']:.2f} "
+        f"core-hours measured (estimated {summary['estimated_core_hours']:.2f}); {failed} "
+        f"failed cells; results in {args.into}/{profile.name}/" + (f"; {RESUME}" if failed else "")
+    )
+    return 1 if failed else 0

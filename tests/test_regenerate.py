@@ -1,0 +1,97 @@
+"""`kkl-bench regenerate`: the plan read from a results folder, its estimate, and a run
+interrupted and resumed that makes each cell once."""
+
+import json
+
+import pandas as pd
+import pytest
+
+from kkl_bench import harness, ledger, regenerate
+from kkl_bench.cli import main
+from kkl_bench.harness import Job
+from kkl_bench.results import load_results
+from kkl_bench.task import Task, get_profile
+
+PROFILE = get_profile("quick")
+
+
+@pytest.fixture(scope="module")
+def published(tmp_path_factory):
+    """A results folder of two rows (the EKF on three cells, the UKF on two)."""
+    results = tmp_path_factory.mktemp("published")
+    for estimator, regimes in (("ekf", ["zero", "sinusoid", "square"]), ("ukf", ["zero", "square"])):
+        argv = ["run", "--estimator", estimator, "--system", "duffing", "--regime", *regimes]
+        assert main([*argv, "--results", str(results)]) == 0
+    return results
+
+
+def test_the_plan_covers_the_source_cells_and_counts_their_recorded_cost(published, tmp_path):
+    source = load_results(published)
+    planned = regenerate.plan(source, PROFILE, tmp_path / "into", tmp_path / "cache")
+    assert planned.cells == 5 and planned.done == 0
+    assert [(p.job.estimator, [t.regime for t in p.job.tasks]) for p in planned.jobs] == [
+        ("ekf", ["zero", "sinusoid", "square"]),
+        ("ukf", ["zero", "square"]),
+    ]
+    for planned_job in planned.jobs:  # the fit time and scoring time its cells recorded
+        cells = source[source["estimator"] == planned_job.job.estimator]
+        scoring = (cells["estimate_us_per_step"] * 1e-6 * cells["n_test"] * 1001).sum()
+        fit = cells["fit_time_s"].iloc[0]
+        assert planned_job.estimate_s == pytest.approx(fit + scoring)
+    assert "2 fits of 2 rows to make 5 cells" in planned.describe()
+
+
+def test_a_model_several_rows_share_is_counted_once():
+    spent = {"phase1": {"seconds": 100.0}, "phase2": {"seconds": 10.0}}
+    cells = [
+        {"estimator": row, "task": "duffing/zero@v1", "seed": 0, "fit_report": {"spent": report}}
+        for row, report in (("a", spent), ("b", {**spent, "phase2": {"seconds": 20.0}}))
+    ]
+    frame = pd.DataFrame(cells).assign(estimate_us_per_step=float("nan"), fit_time_s=1.0)
+    records = regenerate._CostRecords(frame)
+    task = Task("duffing", "zero")
+    assert records.seconds(Job("a", "duffing", (task,), 0)) == 110.0
+    assert records.seconds(Job("b", "duffing", (task,), 0)) == 20.0
+
+
+def test_an_interrupted_regeneration_resumes_and_makes_each_cell_once(
+    published, tmp_path, capsys, monkeypatch
+):
+    into = tmp_path / "into"
+    argv = ["regenerate", "--from", str(published), "--into", str(into), "--profile", "quick"]
+    calls = []
+    original = harness.run_job
+
+    def interrupted_after_one_job(spec, job):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(job.estimator)
+        return original(spec, job)
+
+    with monkeypatch.context() as patched:
+        patched.setattr(harness, "run_job", interrupted_after_one_job)
+        assert main(argv) == 130
+    assert calls == ["ekf"]
+    first = json.loads((into / ledger.LEDGER_FILE).read_text())["jobs"]
+    assert [record["cells"] for record in first.values()] == [3]
+
+    assert main(argv) == 0  # resumed: the UKF's job only
+    out = capsys.readouterr().out
+    assert "1 fits of 1 rows to make 2 cells (3 of 5 already done)" in out
+    written = json.loads((into / ledger.LEDGER_FILE).read_text())["jobs"]
+    assert sorted(record["cells"] for record in written.values()) == [2, 3]
+    cells = load_results(into)
+    assert len(cells) == 5 and not cells.duplicated(["estimator", "task", "seed"]).any()
+    assert set(cells["status"]) == {"ok"}
+    assert main(argv) == 0  # nothing left to do
+    assert "0 fits of 0 rows to make 0 cells (5 of 5 already done)" in capsys.readouterr().out
+    summary = ledger.ledger_summary(ledger.read_ledger(into))
+    assert summary["jobs"] == 2 and summary["cells"] == 5 and summary["core_hours"] > 0
+
+
+def test_regenerate_refuses_its_source_as_target_and_unknown_names(published, capsys):
+    base = ["regenerate", "--from", str(published), "--profile", "quick"]
+    assert main([*base, "--into", str(published)]) == 2
+    assert "is the source folder" in capsys.readouterr().err
+    assert main([*base, "--into", "elsewhere", "--estimator", "enkf", "--dry-run"]) == 2
+    assert "hold no estimator 'enkf'; valid: ekf, ukf" in capsys.readouterr().err
