@@ -19,7 +19,10 @@ PROFILE = get_profile("quick")
 def published(tmp_path_factory):
     """A results folder of two rows (the EKF on three cells, the UKF on two)."""
     results = tmp_path_factory.mktemp("published")
-    for estimator, regimes in (("ekf", ["zero", "sinusoid", "square"]), ("ukf", ["zero", "square"])):
+    for estimator, regimes in (
+        ("ekf", ["zero", "sinusoid", "square"]),
+        ("ukf", ["zero", "square"]),
+    ):
         argv = ["run", "--estimator", estimator, "--system", "duffing", "--regime", *regimes]
         assert main([*argv, "--results", str(results)]) == 0
     return results
