@@ -1,6 +1,7 @@
 """The ledger a regeneration (:mod:`kkl_bench.regenerate`) keeps beside the results it
-writes: each finished fit's measured wall time, so that the core-hours of a board are
-read from what ran, across interrupted and resumed invocations."""
+writes: each finished fit's measured processor time (its core-seconds, one thread a
+fit) and wall time, so that the core-hours of a board are read from what ran, across
+interrupted and resumed invocations."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ LEDGER_FILE = "regeneration.json"
 
 def read_ledger(folder: Path) -> dict[str, Any]:
     """The ledger of the regenerations that wrote into ``folder`` (empty if none):
-    ``jobs``: key -> ``{seconds, cells, failed, git_commit, finished_at}``."""
+    ``jobs``: key -> ``{seconds, wall_seconds, estimate_s, cells, failed, git_commit,
+    finished_at}`` (``seconds``: processor time)."""
     path = Path(folder) / LEDGER_FILE
     if not path.exists():
         return {"jobs": {}}
@@ -25,14 +27,15 @@ def read_ledger(folder: Path) -> dict[str, Any]:
 
 
 def record_job(
-    into: Path, key: str, seconds: float, estimate_s: float, cells: int, failed: int
+    into: Path, key: str, times: dict[str, float], estimate_s: float, cells: int, failed: int
 ) -> None:
-    """Add one finished job (its ``key``, wall time, estimate, cells made and failed) to
-    the ledger in ``into``, written atomically; a job run again adds its seconds."""
+    """Add one finished job (its ``key``, ``times``: ``seconds`` of processor time and
+    ``wall_seconds``, its estimate, the cells it made and those that failed) to the ledger
+    in ``into``, written atomically; a job run again adds its times to those before."""
     ledger = read_ledger(into)
     previous = ledger["jobs"].get(key, {})
     ledger["jobs"][key] = {
-        "seconds": previous.get("seconds", 0.0) + seconds,
+        **{name: previous.get(name, 0.0) + value for name, value in times.items()},
         "estimate_s": estimate_s,
         "cells": cells,
         "failed": failed,

@@ -12,7 +12,8 @@ of work, not cells.
 
 The run is resumable like ``kkl-bench run``: cells already in the target folder are
 skipped, and a killed training continues from its checkpoint in the model cache. Each
-job's measured wall time (one thread per job) is added to the target folder's
+job's measured processor time (one thread per job: its core-seconds) is added to the
+target folder's
 :data:`~kkl_bench.ledger.LEDGER_FILE` when it ends, so the core-hours of a regeneration spread over
 several invocations, or machines, add up; the board's Reproduce section reads them.
 """
@@ -183,12 +184,14 @@ def _scoring_seconds(cell, task) -> float:
     return per_step * 1e-6 * cell.n_test * samples
 
 
-def _timed_job(spec: RunSpec, job: Job) -> tuple[JobOutcome, float]:
-    """:func:`~kkl_bench.harness.run_job` on one thread, with its wall time (s)."""
-    start = time.perf_counter()
+def _timed_job(spec: RunSpec, job: Job) -> tuple[JobOutcome, float, float]:
+    """:func:`~kkl_bench.harness.run_job` on one thread, with the processor time it took
+    (s: the core-seconds it used, whatever else shares the machine, waits for another
+    job's model or pauses) and its wall time (s)."""
+    start, start_cpu = time.perf_counter(), time.process_time()
     with thread_limit(1):
         outcome = harness.run_job(spec, job)
-    return outcome, time.perf_counter() - start
+    return outcome, time.process_time() - start_cpu, time.perf_counter() - start
 
 
 def run(
@@ -200,16 +203,21 @@ def run(
     scheduler: str | None = None,
 ) -> dict[str, Any]:
     """Run ``planned``'s jobs (``jobs`` at once, through
-    :func:`~kkl_bench.executors.execute`), adding each finished job's wall time to the
-    ledger in ``into`` as it ends; ``progress(planned_job, outcome)`` after each. Returns
-    the ledger."""
+    :func:`~kkl_bench.executors.execute`), adding each finished job's processor and wall
+    time to the ledger in ``into`` as it ends; ``progress(planned_job, outcome)`` after
+    each. Returns the ledger."""
     by_job = {planned_job.job: planned_job for planned_job in planned.jobs}
     arguments = [(p.spec, p.job) for p in planned.jobs]
-    for outcome, seconds in execute(_timed_job, arguments, jobs, executor, scheduler):
+    for outcome, seconds, wall in execute(_timed_job, arguments, jobs, executor, scheduler):
         planned_job = by_job[outcome.job]
         failed = sum(cell.status == "error" for cell in outcome.scored)
         record_job(
-            into, planned_job.key, seconds, planned_job.estimate_s, len(outcome.scored), failed
+            into,
+            planned_job.key,
+            {"seconds": seconds, "wall_seconds": wall},
+            planned_job.estimate_s,
+            len(outcome.scored),
+            failed,
         )
         if progress is not None:
             progress(planned_job, outcome)

@@ -203,7 +203,8 @@ def regeneration_sentence(summary: dict | None) -> str:
     return (
         f"Written by `kkl-bench regenerate`: {summary['jobs']} fits making "
         f"{summary['cells']} cells in **{summary['core_hours']:.1f} core-hours** measured "
-        f"(one thread a fit; {summary['estimated_core_hours']:.1f} estimated beforehand), "
+        f"(processor time, one thread a fit; {summary['estimated_core_hours']:.1f} "
+        "estimated beforehand), "
         f"at commit{'s' if len(summary['commits']) > 1 else ''} {commits}, the fits "
         f"finishing between {summary['from']} and {summary['to']}."
     )
