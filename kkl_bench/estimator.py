@@ -18,8 +18,10 @@ from __future__ import annotations
 import copy
 import inspect
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -134,6 +136,9 @@ class Estimator(ABC):
         particle filter). On a track whose tasks differ from the model it is fitted
         with (noise, initial box), it is also fitted with each task's truth and
         published as ``<name>+truth``: the limit no estimator can beat there.
+    check_budget: budget keys the conformance kit (``kkl-bench check``) fits the
+        estimator with, over the ``quick`` profile's budget (default none): a learned
+        plugin sets small ones, so that checking it takes a minute, not its training.
     """
 
     name: ClassVar[str] = ""
@@ -142,6 +147,7 @@ class Estimator(ABC):
     uses_logged_data: ClassVar[bool] = False
     supported_measurements: ClassVar[frozenset[str]] = frozenset()
     bayes_limit: ClassVar[bool] = False
+    check_budget: ClassVar[Mapping[str, Any]] = MappingProxyType({})
 
     def unsupported_reason(self, system: System, measurement: MeasurementModel) -> str | None:
         """Why the estimator cannot be fitted for ``system`` observed through

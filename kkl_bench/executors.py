@@ -1,10 +1,12 @@
 """One way to run independent jobs: an unordered joblib generator, on local processes or Dask.
 
 ``loky`` (the default) runs jobs in worker processes on this machine, each
-limited to ``cores // jobs`` threads (BLAS, OpenMP and torch, through the
-environment loky gives its workers) so that N workers do not oversubscribe
-the cores; with one job it runs them in this
-process. ``dask`` sends the same jobs through joblib's Dask backend to a
+limited to ``threads`` threads (BLAS, OpenMP and torch, through the environment
+loky gives its workers; at most ``cores // jobs``) so that N workers do not
+oversubscribe the cores; with one job it runs them in this process, limited
+likewise. One thread a job is the default: the benchmark's networks and filters
+are small, a second thread speeds a job up little, and two runs side by side on
+the same cores, which cannot see each other, then never oversubscribe them. ``dask`` sends the same jobs through joblib's Dask backend to a
 ``distributed`` cluster: the scheduler at ``scheduler`` if given (which is how
 SLURM or PBS clusters are reached, through dask-jobqueue), else a
 ``LocalCluster`` of ``jobs`` single-threaded worker processes. Results come
@@ -32,9 +34,15 @@ def available_cores() -> int:
     return os.cpu_count() or 1
 
 
-def threads_per_worker(jobs: int) -> int:
-    """Threads each of ``jobs`` concurrent workers may use on the cores this process has."""
-    return max(1, available_cores() // jobs)
+def threads_per_worker(jobs: int, threads: int | None = None) -> int:
+    """Threads each of ``jobs`` concurrent workers uses: ``threads`` (default
+    :data:`THREADS_PER_JOB`), at most its share of the cores this process has."""
+    share = max(1, available_cores() // jobs)
+    return min(share, THREADS_PER_JOB if threads is None else threads)
+
+
+THREADS_PER_JOB = 1
+"""Threads a job uses unless told otherwise (see the module)."""
 
 
 @contextlib.contextmanager
@@ -96,8 +104,10 @@ def execute(
     jobs: int = 1,
     executor: str = "loky",
     scheduler: str | None = None,
+    threads: int | None = None,
 ) -> Iterator[Any]:
-    """Yield ``function(*args)`` for every ``args`` in ``arguments``, in completion order.
+    """Yield ``function(*args)`` for every ``args`` in ``arguments``, in completion order,
+    each job on :func:`threads_per_worker` threads (Dask workers: one).
 
     Raises ``ValueError`` for an unknown executor or a ``jobs`` below 1.
     """
@@ -114,15 +124,16 @@ def execute(
         return
     if scheduler:
         raise ValueError("--scheduler is for the dask executor")
+    per_job = threads_per_worker(jobs, threads)
     if jobs == 1:
         for args in arguments:
-            yield function(*args)
+            with thread_limit(per_job):
+                result = function(*args)
+            yield result
         return
     # loky sets OMP/MKL/OpenBLAS thread counts in each worker's environment when
     # it starts them; torch reads them when (and only if) a job imports it
-    with parallel_config(
-        backend="loky", n_jobs=jobs, inner_max_num_threads=threads_per_worker(jobs)
-    ):
+    with parallel_config(backend="loky", n_jobs=jobs, inner_max_num_threads=per_job):
         yield from Parallel(return_as="generator_unordered")(
             delayed(function)(*args) for args in arguments
         )

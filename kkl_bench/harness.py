@@ -310,6 +310,7 @@ def run(
     jobs: int = 1,
     executor: str = "loky",
     scheduler: str | None = None,
+    threads: int | None = None,
 ) -> RunSummary:
     """Run the grid of ``spec``; ``progress(cell, status)`` is called for every cell.
 
@@ -317,7 +318,8 @@ def run(
     ``"diverged"`` (scored, some trajectory diverged), ``"unsupported"`` (the estimator
     cannot be fitted for the task: :meth:`~kkl_bench.estimator.Estimator.unsupported_reason`)
     or ``"error"``. Jobs (estimator x system) run through
-    :func:`kkl_bench.executors.execute` with ``jobs``, ``executor`` and ``scheduler``.
+    :func:`kkl_bench.executors.execute` with ``jobs``, ``executor``, ``scheduler`` and
+    ``threads`` (per job; default one).
     If a worker dies, every finished cell is kept, the others are recorded as errors,
     and the run returns.
     """
@@ -342,7 +344,8 @@ def run(
 
     returned = set()
     try:
-        for outcome in execute(run_job, [(spec, job) for job in todo], jobs, executor, scheduler):
+        arguments = [(spec, job) for job in todo]
+        for outcome in execute(run_job, arguments, jobs, executor, scheduler, threads):
             returned.add(outcome.job)
             for cell in outcome.done_elsewhere:
                 summary.cached.append(cell)

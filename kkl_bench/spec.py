@@ -19,7 +19,15 @@ from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import did_you_mean, estimators, systems
 from kkl_bench.task import Profile, Task
-from kkl_bench.tracks import Plant, TrackError, get_track
+from kkl_bench.tracks import (
+    TRACKS_ENV,
+    Plant,
+    TrackError,
+    get_track,
+    template_name,
+    track_template,
+    tracks_of,
+)
 from kkl_bench.training import TrainingData
 
 
@@ -74,10 +82,7 @@ class RunSpec:
                         f"valid regimes: {', '.join(sorted(names))}{did_you_mean(regime, names)}"
                     )
         if not self.tasks():
-            raise ValueError(
-                f"track(s) {', '.join(self.tracks)} have no task for system(s) "
-                f"{', '.join(self.systems)}"
-            )
+            raise TrackError(_no_task_message(self.systems, self.tracks))
         check_device(self.device)
         if not self.seeds:
             raise ValueError("no seeds selected")
@@ -112,6 +117,28 @@ class RunSpec:
         """The seeds ``estimator`` runs with: all, or the first if it ignores the seed."""
         uses_seed = estimators.get(variants.base_name(estimator)).uses_seed
         return self.seeds if uses_seed else self.seeds[:1]
+
+
+def _no_task_message(systems: tuple[str, ...], tracks: tuple[str, ...]) -> str:
+    """Why the ``tracks`` asked for hold no task for ``systems``, and what to do: the tracks
+    that do list them, or, for a system no track lists, the track file to write."""
+    lines = [f"track(s) {', '.join(tracks)} have no task for system(s) {', '.join(systems)}"]
+    for system in systems:
+        listed = tracks_of(system)
+        if listed:
+            lines.append(f"  {system} is on track(s) {', '.join(listed)}: pass --track {listed[0]}")
+            continue
+        name = template_name(system)
+        lines += [
+            f"  {system} is on no track: a track file says which tasks a system runs. Write",
+            f"  this one as tracks/{name}.toml (any folder of track files),",
+            "",
+            *(f"    {line}".rstrip() for line in track_template(system).splitlines()),
+            "",
+            f"  then run with that folder in ${TRACKS_ENV}, e.g. {TRACKS_ENV}=tracks "
+            f"kkl-bench run ... --system {system} --track {name}",
+        ]
+    return "\n".join(lines)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ or from the shell: ``kkl-bench check my_estimator``. Each check is small and
 named; :func:`estimator_checks` yields them for ``pytest.mark.parametrize``.
 
 The checks fit the estimator once per system (by default :data:`CHECK_SYSTEMS`:
-a two-state and a three-state system) with the ``quick`` profile's budget,
+a two-state and a three-state system) with the ``quick`` profile's budget updated with
+the estimator's ``check_budget``,
 inside :func:`sealed_test_streams` (so reading a test set fails), and run it
 on short forced trajectories from a stream of its own. Every fit gets a fresh, empty cache directory, so the determinism
 check really trains twice. An estimator that declares ``uses_logged_data``
@@ -56,7 +57,8 @@ class Conformance:
         unfitted estimator instance.
     system: registry name of the system to check on (default: the first of
         :func:`check_systems`).
-    budget: training budget for ``fit`` (default: the quick profile's for this estimator).
+    budget: training budget for ``fit`` (default: the quick profile's for this estimator,
+        updated with its ``check_budget``).
     """
 
     def __init__(
@@ -83,7 +85,7 @@ class Conformance:
             training=TrainingData(model, DT, N_SAMPLES, SIGMA_W, SIGMA_V, seed=0),
             seed=0,
             profile="quick",
-            budget=get_profile("quick").budget_for(budget_name) if budget is None else budget,
+            budget=check_budget(self.prototype, budget_name) if budget is None else budget,
             cache_dir=self.fresh_cache(),
         )
         self.data: Trajectories = self.context.training.simulate(
@@ -246,6 +248,12 @@ class Conformance:
     def check_does_not_read_test_sets(self) -> None:
         """``fit`` and ``estimate`` never ask for a test stream (they run sealed; see the module doc)."""
         self.x_hat  # noqa: B018 - fitting and estimating inside sealed_test_streams() is the check
+
+
+def check_budget(estimator: Estimator, name: str) -> dict[str, Any]:
+    """The budget a check fits ``estimator`` (registered as ``name``) with: the ``quick``
+    profile's for it, updated with its ``check_budget``."""
+    return {**get_profile("quick").budget_for(name), **estimator.check_budget}
 
 
 def estimator_checks(

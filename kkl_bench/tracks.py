@@ -404,6 +404,31 @@ def get_track(name: str) -> Track:
     return tracks[name]
 
 
+def tracks_of(system: str) -> list[str]:
+    """The tracks that list ``system``."""
+    return [name for name, track in load_tracks().items() if system in track.systems]
+
+
+def template_name(system: str) -> str:
+    """The name :func:`track_template` gives the track of ``system`` (a track name holds
+    lower-case letters, digits and '-')."""
+    return re.sub(r"[^a-z0-9-]", "-", system.lower())
+
+
+def track_template(system: str) -> str:
+    """A track file that runs ``system`` on the paper's four regimes (with the paper's
+    noise, x0 box and horizon): what to write for a system no track lists yet."""
+    tasks = "".join(
+        f'\n[[task]]\nname = "{name}"\nfamily = "{name}"\n'
+        for name in ("zero", "constant", "sinusoid", "square")
+    )
+    return (
+        f'name = "{template_name(system)}"\nversion = 1\n'
+        f'description = "{system} under the paper\'s four input regimes."\n'
+        f'systems = ["{system}"]\n{tasks}'
+    )
+
+
 def find_track(name: str) -> Track | None:
     """The track ``name`` if this install declares it, else None (stored results may come
     from a track file this install does not have)."""

@@ -16,13 +16,14 @@ def pytest_addoption(parser):
 
 
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``exhaustive`` are skipped unless ``--exhaustive`` is given."""
+    """Tests marked ``exhaustive`` are deselected unless ``--exhaustive`` is given (the run
+    reports how many; they are not printed one by one as skips)."""
     if config.getoption("--exhaustive"):
         return
-    skip = pytest.mark.skip(reason="exhaustive: run with --exhaustive")
-    for item in items:
-        if "exhaustive" in item.keywords:
-            item.add_marker(skip)
+    left_out = [item for item in items if "exhaustive" in item.keywords]
+    if left_out:
+        config.hook.pytest_deselected(items=left_out)
+        items[:] = [item for item in items if "exhaustive" not in item.keywords]
 
 
 def pytest_configure(config):
@@ -32,7 +33,7 @@ def pytest_configure(config):
     if workers:
         import torch
 
-        threads = threads_per_worker(int(workers))
+        threads = threads_per_worker(int(workers), threads=os.cpu_count())
         os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(threads)
         torch.set_num_threads(threads)
 

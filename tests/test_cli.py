@@ -336,3 +336,19 @@ def test_a_run_records_its_results_folder_relative_to_where_it_ran(tmp_path, mon
     (cell,) = (tmp_path / "results").rglob("*.json")
     command = json.loads(cell.read_text())["provenance"]["command"]
     assert command == f"kkl-bench {' '.join(args)} --results results"
+
+
+def test_a_system_on_no_track_is_refused_with_the_track_file_to_write(capsys, monkeypatch):
+    from kkl_bench import spec
+
+    monkeypatch.setattr(spec, "tracks_of", lambda system: [])  # as a new plugin system
+    assert main(["run", "--estimator", "ekf", "--system", "chua"]) == 2
+    error = capsys.readouterr().err
+    assert "chua is on no track: a track file says which tasks a system runs" in error
+    assert 'systems = ["chua"]' in error and 'family = "square"' in error
+    assert "KKL_BENCH_TRACKS=tracks kkl-bench run ... --system chua --track chua" in error
+
+
+def test_a_system_on_another_track_is_pointed_to_it(capsys):
+    assert main(["run", "--estimator", "ekf", "--system", "chua"]) == 2
+    assert "chua is on track(s) more-systems: pass --track more-systems" in capsys.readouterr().err

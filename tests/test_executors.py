@@ -165,10 +165,20 @@ def test_a_dead_worker_keeps_finished_cells_and_records_the_rest(tmp_path, monke
     assert set(load_results(tmp_path).groupby("system")["status"].first()) == {"ok", "error"}
 
 
-def test_threads_per_worker_counts_the_cores_this_process_may_use(monkeypatch):
-    """Under ``taskset -c 1`` a single job gets one thread, not the machine's count."""
+def test_a_job_runs_on_one_thread_unless_told_within_its_share_of_the_cores(monkeypatch):
+    """Under ``taskset -c 1`` a job asking for four threads gets one, not the machine's
+    count; on four cores two jobs get one thread each by default, two if they ask."""
     monkeypatch.setattr(executors.os, "sched_getaffinity", lambda pid: {1}, raising=False)
-    assert executors.threads_per_worker(1) == 1
+    assert executors.threads_per_worker(1, threads=4) == 1
     monkeypatch.setattr(executors.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
-    assert executors.threads_per_worker(2) == 2
-    assert executors.threads_per_worker(8) == 1
+    assert executors.threads_per_worker(2) == 1
+    assert executors.threads_per_worker(2, threads=4) == 2
+    assert executors.threads_per_worker(8, threads=4) == 1
+
+
+def test_a_job_run_in_this_process_is_limited_to_its_threads():
+    import torch
+
+    before = torch.get_num_threads()
+    seen = list(executors.execute(lambda: torch.get_num_threads(), [()], jobs=1, threads=1))
+    assert seen == [1] and torch.get_num_threads() == before

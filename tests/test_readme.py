@@ -1,9 +1,15 @@
-"""The README's plugin example runs, passes the conformance kit and scores a cell."""
+"""The README's plugin examples run, pass the conformance kits and score cells."""
 
 import dataclasses
 import inspect
+import os
 import re
+import shlex
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.harness import RunSpec, run
@@ -30,6 +36,58 @@ def test_plugin_example_runs_and_scores(tmp_path, monkeypatch):
     summary = run(spec)
     assert summary.ok and summary.scored[0].estimator_params == {"gain": 0.5}
     assert max(summary.scored[0].rmse) < 1.0
+
+
+@pytest.mark.slow
+def test_the_plugin_package_of_the_readme_installs_checks_and_runs(tmp_path):
+    """The package's files copied from the README into a fresh folder, installed (into a
+    folder of its own on PYTHONPATH rather than this environment, which the README's
+    `pip install -e .` would change for every later test), then every other line of the
+    README's commands run there as written."""
+    package = tmp_path / "my-plugins"
+    (package / "my_plugins").mkdir(parents=True)
+    (package / "my_plugins" / "__init__.py").write_text("")
+    files = re.findall(
+        r"<!-- readme-plugin-file:(\S+) -->\n```\w+\n(.*?)```", README.read_text(), re.DOTALL
+    )
+    assert {name for name, _ in files} == {
+        "my_plugins/pendulum.py", "my_plugins/window_mlp.py", "tracks/forced-pendulum.toml",
+        "pyproject.toml",
+    }  # fmt: skip
+    for name, text in files:
+        (package / name).parent.mkdir(parents=True, exist_ok=True)
+        (package / name).write_text(text)
+    site = tmp_path / "site"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", site, package],
+        check=True,
+        capture_output=True,
+    )
+    environment = {**os.environ, "PYTHONPATH": str(site), "KKL_BENCH_CACHE": str(tmp_path)}
+    commands = [
+        line.split("#")[0].strip()
+        for line in readme_block("readme-plugin-commands").splitlines()
+        if line.strip() and not line.startswith("pip ")
+    ]
+    assert len(commands) == 4
+    bin_dir = Path(sys.executable).parent
+    for command in commands:
+        words = shlex.split(command)
+        assigned = dict(word.split("=", 1) for word in words if "=" in word and word[0].isupper())
+        words = [word for word in words if word.split("=", 1)[0] not in assigned]
+        done = subprocess.run(
+            [str(bin_dir / words[0]), *words[1:]],
+            cwd=package,
+            env={**environment, **assigned},
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, f"{command}\n{done.stdout}\n{done.stderr}"
+        if words[1] == "check":
+            assert " 0 failed" in done.stdout, done.stdout
+        else:
+            assert " 0 failed; results in results/quick/" in done.stdout, done.stdout
 
 
 def test_ci_runs_the_readme_test_command():

@@ -10,6 +10,7 @@ from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenva
 from kkl_bench.protocol import DT
 from kkl_bench.protocol.simulate import simulate
 from kkl_bench.registry import systems
+from kkl_bench.system_checks import check_system, run_system_checks
 from kkl_bench.testing import check_estimator
 from tests.budgets import few_steps
 
@@ -129,3 +130,24 @@ def test_learned_estimators_pass_the_conformance_kit_with_several_outputs(estima
     recurrent baseline; each KKL estimator's own phase on several outputs runs in the
     more-systems track (about a minute each here, too long for every test run)."""
     check_estimator(estimator, "lorenz96-n5", few_steps(estimator))
+
+
+@pytest.mark.parametrize("name", ["duffing", "vdp", "rossler", "lorenz", "fitzhugh_nagumo", "chua"])
+def test_every_built_in_system_passes_the_system_checks(name):
+    check_system(name)
+
+
+def test_the_system_checks_name_a_wrong_jacobian_and_a_numpy_only_drift():
+    class Wrong(systems.get("vdp")):
+        def f_jacobian(self, x):
+            jacobian = super().f_jacobian(x)
+            jacobian[..., 1, 1] += 0.1
+            return jacobian
+
+        def f(self, x):
+            return np.stack([x[..., 1], np.sin(x[..., 0])], axis=-1)
+
+    failures = dict(run_system_checks(Wrong()))
+    assert "f_jacobian differs from finite differences" in str(failures["check_f_jacobian"])
+    assert "f fails on a torch tensor" in str(failures["check_evaluates_torch_tensors"])
+    assert failures["check_h_jacobian"] is None and failures["check_shapes"] is None

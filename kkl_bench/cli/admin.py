@@ -5,13 +5,19 @@ the Bayes limit."""
 from __future__ import annotations
 
 import argparse
+import importlib.resources
+from pathlib import Path
 
-from kkl_bench import families, variants
+import pandas as pd
+
+from kkl_bench import families, fit_times, variants
 from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.cli.common import add_cache_argument, names
 from kkl_bench.headroom import headroom
 from kkl_bench.measurement import sensors
 from kkl_bench.registry import estimators, regimes, systems
+from kkl_bench.results import load_results
+from kkl_bench.system_checks import run_system_checks
 from kkl_bench.task import Task, load_profiles
 from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
 from kkl_bench.tracks import broken_tracks, get_track, load_tracks
@@ -28,8 +34,17 @@ def add_parser(commands) -> None:
     add_cache_argument(cache)
     cache.set_defaults(handler=manage_cache)
 
-    check = commands.add_parser("check", help="run the conformance checks on an estimator")
-    check.add_argument("estimator", metavar="NAME", help="estimator name or variant")
+    check = commands.add_parser(
+        "check",
+        help="run the conformance checks on an estimator or a system",
+        description="Run the conformance kit on an estimator (fitted on the quick profile's "
+        "budget, updated with the estimator's check_budget) or, given a system's name, the "
+        "system checks (shapes, Jacobians against finite differences, torch tensors, finite "
+        "trajectories).",
+    )
+    check.add_argument(
+        "estimator", metavar="NAME", help="estimator name or variant, or a system's name"
+    )
     check.add_argument(
         "--system",
         nargs="+",
@@ -39,6 +54,24 @@ def add_parser(commands) -> None:
         "registered systems it supports)",
     )
     check.set_defaults(handler=check_conformance)
+
+    times = commands.add_parser(
+        "fit-times",
+        help="record how long fits take, for the estimates of kkl-bench run",
+        description="Measure, per profile, row and system, the median training seconds of "
+        "the fits behind the cells of each RESULTS folder and their scoring seconds per cell, "
+        "and merge them into --out (default: the table the package ships, which "
+        "`kkl-bench run` estimates from where its own results folder has no record).",
+    )
+    times.add_argument("--results", type=Path, nargs="+", required=True, metavar="DIR")
+    times.add_argument(
+        "--out",
+        type=Path,
+        default=Path(str(importlib.resources.files("kkl_bench").joinpath(fit_times.SHIPPED))),
+        metavar="CSV",
+        help="the table to merge into (default: the package's)",
+    )
+    times.set_defaults(handler=record_fit_times)
 
     room = commands.add_parser(
         "headroom",
@@ -103,16 +136,33 @@ def manage_cache(args: argparse.Namespace) -> int:
 
 
 def check_conformance(args: argparse.Namespace) -> int:
-    variants.build(args.estimator)  # an unknown name is a usage error, not a failed check
+    if args.estimator in systems and args.estimator not in estimators:
+        if args.system:
+            raise ValueError(
+                f"--system is for an estimator's checks; {args.estimator!r} is a system"
+            )
+        outcomes = (
+            (args.estimator, name, error) for name, error in run_system_checks(args.estimator)
+        )
+    else:
+        variants.build(args.estimator)  # an unknown name is a usage error, not a failed check
+        checked = names(systems, args.system) if args.system else None
+        outcomes = run_checks(args.estimator, checked)
     failures = passes = 0
-    checked = names(systems, args.system) if args.system else None
-    for system, name, error in run_checks(args.estimator, checked):
+    for system, name, error in outcomes:
         print(f"{'PASS' if error is None else 'FAIL'} {system} {name}", end="")
         print("" if error is None else f": {describe(error)}")
         failures += error is not None
         passes += error is None
     print(f"{passes} passed, {failures} failed")
     return 1 if failures else 0
+
+
+def record_fit_times(args: argparse.Namespace) -> int:
+    measured = pd.concat([fit_times.measure(load_results(folder)) for folder in args.results])
+    table = fit_times.merge_into(args.out, measured)
+    print(f"{len(measured)} rows measured; {args.out} holds {len(table)}")
+    return 0
 
 
 def measure_headroom(args: argparse.Namespace) -> int:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
+import statistics
 import sys
 import threading
 import time
@@ -12,13 +14,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from kkl_bench import harness, status
+from kkl_bench import fit_times, harness, status
 from kkl_bench.cache import default_cache_dir
 from kkl_bench.cli.common import (
     add_cache_argument,
     add_jobs_argument,
     add_results_argument,
     names,
+    positive_integer,
     seed,
 )
 from kkl_bench.devices import DEVICES
@@ -29,6 +32,8 @@ from kkl_bench.registry import estimators, systems
 from kkl_bench.results import provenance
 from kkl_bench.task import get_profile
 from kkl_bench.tracks import load_tracks
+
+DEFAULT_PROFILE = "quick"
 
 RESUME = (
     "every finished cell is saved; run the same command again to resume (finished cells "
@@ -65,7 +70,7 @@ def add_parser(commands) -> None:
         metavar="NAME",
         help="tasks of the tracks to score, e.g. sinusoid or chirp (default: all)",
     )
-    run.add_argument("--profile", default="quick", help="profile: quick (default) or standard")
+    run.add_argument("--profile", default=None, help="profile: quick (the default) or standard")
     run.add_argument(
         "--seed",
         type=seed,
@@ -78,6 +83,14 @@ def add_parser(commands) -> None:
     add_results_argument(run)
     add_cache_argument(run)
     add_jobs_argument(run, "(estimator, system) jobs")
+    run.add_argument(
+        "--threads",
+        type=positive_integer("threads"),
+        default=None,
+        metavar="N",
+        help="torch and BLAS threads per job (default 1: two runs side by side, or --jobs "
+        "up to the cores, never oversubscribe them; at most the cores over --jobs)",
+    )
     run.add_argument(
         "--executor",
         choices=EXECUTORS,
@@ -112,7 +125,7 @@ def run_command(args: argparse.Namespace) -> int:
         systems=names(systems, args.system),
         regimes=tuple(dict.fromkeys(args.regime)) if args.regime else None,
         tracks=tuple(load_tracks()) if args.track == ["all"] else tuple(args.track),
-        profile=get_profile(args.profile),
+        profile=get_profile(args.profile or DEFAULT_PROFILE),
         seeds=tuple(args.seed),
         results_dir=args.results,
         cache_dir=args.cache or default_cache_dir(),
@@ -121,6 +134,7 @@ def run_command(args: argparse.Namespace) -> int:
         command=args.command_line,
         own_rows_only=args.own_rows_only,
     )
+    args.profile_given = args.profile is not None
     if args.scheduler is None:  # local workers: a missing GPU is an error before any work
         resolve_device(args.device)
     commit = provenance()["git_commit"]
@@ -130,15 +144,21 @@ def run_command(args: argparse.Namespace) -> int:
             "trained now record a commit that does not hold the code that made them",
             file=sys.stderr,
         )
-    total = sum(  # every row's cells, the +logged rows' included
-        len(spec.seeds_for(name)) * len(tasks)
-        for name in spec.estimators
-        for system in spec.systems
-        for _, tasks in harness.rows_and_tasks(spec, name, system)
-    )
+    todo, done = harness.plan(spec)
+    weights = announce(spec, todo, len(done), args.profile_given)
+    per_cell = {
+        (job.estimator, job.system, job.seed): weight / len(job.tasks)
+        for job, weight in zip(todo, weights, strict=True)
+    }
     with (
         tqdm(
-            total=total, unit="cell", desc="kkl-bench", dynamic_ncols=True, mininterval=1.0
+            total=sum(weights),
+            unit="s",
+            desc=f"kkl-bench ({len(todo)} fits, estimated work)",
+            dynamic_ncols=True,
+            mininterval=1.0,
+            smoothing=0.0,  # the time left from the average rate of the whole run
+            bar_format=BAR,
         ) as bar,
         showing_jobs(bar, spec.results_dir / ".claims" / spec.profile.name),
     ):
@@ -146,11 +166,16 @@ def run_command(args: argparse.Namespace) -> int:
         def progress(cell, outcome):
             if outcome == "error":
                 tqdm.write(f"error in {cell.estimator} {cell.task}: {cell.error.splitlines()[-1]}")
-            bar.update()
+            bar.update(per_cell.get((cell.estimator, cell.system, cell.seed), 0.0))
 
         try:
             summary = harness.run(
-                spec, progress, jobs=args.jobs, executor=args.executor, scheduler=args.scheduler
+                spec,
+                progress,
+                jobs=args.jobs,
+                executor=args.executor,
+                scheduler=args.scheduler,
+                threads=args.threads,
             )
         except KeyboardInterrupt:
             print(f"kkl-bench: interrupted; {RESUME}", file=sys.stderr)
@@ -162,6 +187,50 @@ def run_command(args: argparse.Namespace) -> int:
         + (f"; {RESUME}" if summary.failed else "")
     )
     return 0 if summary.ok else 1
+
+
+BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}{postfix}]"
+"""The progress bar of a run: the share of the estimated work done and the time left."""
+
+
+def announce(spec: harness.RunSpec, todo, done: int, profile_given: bool) -> list[float]:
+    """Print the run's plan (profile, fits, cells) and its estimated duration, before any
+    work; returns each fit's estimated seconds (the median of the others, or 1, where
+    none is recorded: the bar still advances by fits)."""
+    cells = sum(len(job.tasks) for job in todo)
+    rows = ", ".join(dict.fromkeys(job.estimator for job in todo)) or "nothing"
+    profile = spec.profile.name + ("" if profile_given else " (the default; --profile to choose)")
+    table = fit_times.known(spec.results_dir)
+    seconds, unknown = fit_times.estimate(
+        [(job.estimator, job.system, len(job.tasks)) for job in todo], spec.profile.name, table
+    )
+    recorded = [s for s in seconds if not math.isnan(s)]
+    if not todo:
+        duration = "nothing to do"
+    elif not unknown:
+        duration = f"estimated {_duration(sum(recorded))} (fit times recorded on this profile)"
+    else:
+        duration = (
+            f"estimated {_duration(sum(recorded))} for the fits recorded on this profile; "
+            f"no estimate for {', '.join(unknown[:4])}{' ...' if len(unknown) > 4 else ''} "
+            "(none recorded): the time left shows after the first"
+        )
+    print(
+        f"kkl-bench run: profile {profile}; {len(todo)} fits of {rows} making {cells} cells "
+        f"({done} already done); {duration}",
+        file=sys.stderr,
+    )
+    fallback = statistics.median(recorded) if recorded else 1.0
+    return [fallback if math.isnan(s) else s for s in seconds]
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` as ``42 s``, ``12 min`` or ``3.5 h``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 @contextlib.contextmanager

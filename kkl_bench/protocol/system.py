@@ -29,6 +29,16 @@ def stack(components: list[Any]) -> Any:
     return torch.stack(torch.broadcast_tensors(*components), dim=-1)
 
 
+def namespace(x: Any) -> Any:
+    """The array module of ``x``: ``numpy`` for arrays and numbers, ``torch`` for tensors,
+    so that ``f`` and ``h`` written as ``namespace(x).sin(...)`` evaluate both."""
+    if isinstance(x, np.ndarray | float | int):
+        return np
+    import torch  # only reached when the caller passes tensors
+
+    return torch
+
+
 @dataclass(frozen=True)
 class Ring:
     """How a system's states sit on a ring of identical sites (Lorenz-96): what a local
