@@ -26,10 +26,10 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 
-from kkl_bench.cache import default_cache_dir
 from kkl_bench.measurement import FEATURES, MeasurementModel, with_scale
 from kkl_bench.protocol.simulate import Trajectories
 from kkl_bench.protocol.system import System
+from kkl_bench.support.cache import default_cache_dir
 from kkl_bench.training import TrainingData
 
 
@@ -51,7 +51,7 @@ class FitContext:
     budget: the profile's training budget for this estimator (free-form keys).
     cache_dir: where the estimator may cache trained models.
     device: where torch estimators train: ``auto``, ``cpu`` or ``cuda``
-        (:mod:`kkl_bench.devices`); estimates always run on the CPU.
+        (:mod:`kkl_bench.support.devices`); estimates always run on the CPU.
     logged_data: trajectories logged on the true plant (``t, u, x, y``) of a ``mismatch``
         task, given only to estimators that declare ``uses_logged_data``, else None. The
         plant differs from ``system`` (the nominal model) and from what ``training``

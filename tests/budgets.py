@@ -3,7 +3,7 @@
 from typing import Any
 
 from kkl_bench import variants
-from kkl_bench.task import get_profile
+from kkl_bench.suite.task import get_profile
 
 FEW_STEPS = {
     **{key: 20 for key in ("encoder_steps", "decoder_steps", "selection_steps", "phase2_steps")},

@@ -3,8 +3,8 @@ import os
 import pytest
 from hypothesis import HealthCheck, settings
 
-from kkl_bench.executors import threads_per_worker
 from kkl_bench.registry import estimators
+from kkl_bench.support.executors import threads_per_worker
 
 
 def pytest_addoption(parser):
@@ -16,14 +16,22 @@ def pytest_addoption(parser):
 
 
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``exhaustive`` are deselected unless ``--exhaustive`` is given (the run
-    reports how many; they are not printed one by one as skips)."""
-    if config.getoption("--exhaustive"):
-        return
-    left_out = [item for item in items if "exhaustive" in item.keywords]
-    if left_out:
-        config.hook.pytest_deselected(items=left_out)
-        items[:] = [item for item in items if "exhaustive" not in item.keywords]
+    """Deselected (the run reports how many, instead of a row of skips): the tests marked
+    ``exhaustive`` unless ``--exhaustive`` is given, and the speed benchmarks unless they
+    run (``--benchmark-only``; the default ``--benchmark-skip`` would skip each)."""
+    benchmarks_skipped = config.getoption("benchmark_skip") and not config.getoption(
+        "benchmark_only"
+    )
+
+    def left_out(item) -> bool:
+        if "exhaustive" in item.keywords and not config.getoption("--exhaustive"):
+            return True
+        return benchmarks_skipped and "benchmark" in getattr(item, "fixturenames", ())
+
+    deselected = [item for item in items if left_out(item)]
+    if deselected:
+        config.hook.pytest_deselected(items=deselected)
+        items[:] = [item for item in items if not left_out(item)]
 
 
 def pytest_configure(config):

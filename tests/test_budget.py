@@ -6,7 +6,7 @@ import pytest
 
 from kkl_bench.kkl.config import budget_keys, from_budget
 from kkl_bench.measurement import MeasurementModel, NoiseLaw
-from kkl_bench.spec import FitConditions, conditioned_context
+from kkl_bench.run.spec import FitConditions, conditioned_context
 
 
 @dataclass(frozen=True)

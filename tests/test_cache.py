@@ -3,10 +3,10 @@
 import pytest
 import torch
 
-from kkl_bench import cache
-from kkl_bench.cache import cache_info, default_cache_dir
 from kkl_bench.cli import main
 from kkl_bench.kkl.cache import CheckpointCache
+from kkl_bench.support import cache
+from kkl_bench.support.cache import cache_info, default_cache_dir
 
 DESCRIPTION = {"kind": "test", "value": 1}
 
@@ -123,8 +123,12 @@ def test_the_imported_code_digest_follows_imports_through_modules_and_functions(
 def test_the_figures_draw_on_none_of_the_estimators_or_systems_code():
     """What keeps a board's figures through a change to an estimator: that change reaches
     a figure only through the results it draws."""
-    drawing = cache.imported_modules("kkl_bench.figures")
-    assert {"kkl_bench.figures", "kkl_bench.families", "kkl_bench.summary"} <= set(drawing)
+    drawing = cache.imported_modules("kkl_bench.analysis.figures")
+    assert {
+        "kkl_bench.analysis.figures",
+        "kkl_bench.families",
+        "kkl_bench.analysis.summary",
+    } <= set(drawing)
     assert not [
         name for name in drawing if name.startswith(("kkl_bench.estimators", "kkl_bench.systems"))
     ]

@@ -6,13 +6,13 @@ import dataclasses
 
 import pytest
 
-from kkl_bench.calibration import calibrate, calibrated_context
-from kkl_bench.plants import logged_data, true_plant
+from kkl_bench.fitting.calibration import calibrate, calibrated_context
 from kkl_bench.protocol import SIGMA_V, SIGMA_W
 from kkl_bench.registry import systems
-from kkl_bench.spec import RunSpec, make_fit_context
-from kkl_bench.task import get_profile
-from kkl_bench.tracks import get_track
+from kkl_bench.run.spec import RunSpec, make_fit_context
+from kkl_bench.suite.plants import logged_data, true_plant
+from kkl_bench.suite.task import get_profile
+from kkl_bench.suite.tracks import get_track
 
 
 def fitted_and_true(system: str, plant: str):

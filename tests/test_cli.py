@@ -162,8 +162,8 @@ def test_check_fails_a_plugin_that_raises_on_three_state_systems_and_says_why(ca
 
 
 def test_several_seeds_fit_learned_rows_per_seed_and_filters_once(tmp_path, capsys):
-    from kkl_bench.harness import RunSpec, plan
-    from kkl_bench.task import get_profile
+    from kkl_bench.run.harness import RunSpec, plan
+    from kkl_bench.suite.task import get_profile
 
     spec = RunSpec(
         ("ekf", "injection_kkl[adapt=False]", "autonomous_kkl"),
@@ -191,7 +191,7 @@ def test_several_seeds_fit_learned_rows_per_seed_and_filters_once(tmp_path, caps
 
 
 def test_variant_names_are_canonical_and_stored_under_their_own_name(tmp_path, capsys):
-    from kkl_bench.results import load_results
+    from kkl_bench.run.results import load_results
 
     args = ["run", "--system", "vdp", "--regime", "zero", "--results", str(tmp_path)]
     assert main([*args, "--estimator", "ukf", "ukf[ kappa = 1.0, alpha=0.3 ]"]) == 0
@@ -339,7 +339,7 @@ def test_a_run_records_its_results_folder_relative_to_where_it_ran(tmp_path, mon
 
 
 def test_a_system_on_no_track_is_refused_with_the_track_file_to_write(capsys, monkeypatch):
-    from kkl_bench import spec
+    from kkl_bench.run import spec
 
     monkeypatch.setattr(spec, "tracks_of", lambda system: [])  # as a new plugin system
     assert main(["run", "--estimator", "ekf", "--system", "chua"]) == 2

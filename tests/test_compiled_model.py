@@ -83,7 +83,7 @@ def test_the_rossler_constraint_reflects_x3():
 
 
 def test_a_calibrated_system_compiles_its_affine_sensor():
-    from kkl_bench.calibration import CalibratedSystem
+    from kkl_bench.fitting.calibration import CalibratedSystem
 
     system = CalibratedSystem(systems.get("lorenz")(p=11.0), gain=1.05, offset=0.02)
     model = system.compiled()

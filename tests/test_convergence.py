@@ -1,6 +1,6 @@
 """The board's convergence verdict, read from fit reports."""
 
-from kkl_bench import convergence
+from kkl_bench.support import convergence
 
 TRAINED = {"phase2": {"steps": 10, "samples": 100}}
 

@@ -10,9 +10,9 @@ import pandas as pd
 import pytest
 import torch
 
-from kkl_bench import cost
+from kkl_bench.analysis import cost
+from kkl_bench.analysis.leaderboard import measured_cost_table
 from kkl_bench.cli import main
-from kkl_bench.leaderboard import measured_cost_table
 from kkl_bench.report.markdown import table
 
 

@@ -10,10 +10,10 @@ import pytest
 import torch
 from torch import nn
 
-from kkl_bench import devices
 from kkl_bench.cli import main
-from kkl_bench.devices import draw_integers, draw_normal, resolve, to_numpy, training_on
-from kkl_bench.task import get_profile
+from kkl_bench.suite.task import get_profile
+from kkl_bench.support import devices
+from kkl_bench.support.devices import draw_integers, draw_normal, resolve, to_numpy, training_on
 from kkl_bench.testing import Conformance
 
 

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
+from kkl_bench.analysis.summary import summary_table
 from kkl_bench.cli import main
 from kkl_bench.estimator import Estimator
 from kkl_bench.protocol.metrics import DIVERGENCE_NRMSE, mark_diverged
-from kkl_bench.results import load_results
-from kkl_bench.summary import summary_table
+from kkl_bench.run.results import load_results
 from kkl_bench.testing import run_checks
 
 

@@ -7,14 +7,13 @@ import numpy as np
 import pytest
 
 from kkl_bench.estimator import Estimator, NotFittedError
-from kkl_bench.kkl.inputs import MixtureFamily
 from kkl_bench.registry import estimators
-from kkl_bench.scoring import score
-from kkl_bench.spec import RunSpec, make_fit_context
-from kkl_bench.task import Task, get_profile, make_test_set
+from kkl_bench.run.scoring import score
+from kkl_bench.run.spec import RunSpec, make_fit_context
+from kkl_bench.suite.task import Task, get_profile, make_test_set
+from kkl_bench.suite.tracks import get_track
 from kkl_bench.testing import Conformance, check_estimator
-from kkl_bench.tracks import get_track
-from kkl_bench.training import TrainingData
+from kkl_bench.training import MixtureFamily, TrainingData
 from tests.budgets import few_steps
 
 _conformance = {}

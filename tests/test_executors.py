@@ -10,11 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from kkl_bench import executors, harness
-from kkl_bench.executors import execute
-from kkl_bench.harness import RunSpec, run
-from kkl_bench.results import cell_path, load_results
-from kkl_bench.task import get_profile
+from kkl_bench.run import harness
+from kkl_bench.run.harness import RunSpec, run
+from kkl_bench.run.results import cell_path, load_results
+from kkl_bench.suite.task import get_profile
+from kkl_bench.support import executors
+from kkl_bench.support.executors import execute
 
 GRID = dict(
     estimators=("ekf",),

@@ -5,7 +5,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench import comparisons, families
+from kkl_bench import families
+from kkl_bench.analysis import comparisons
 from kkl_bench.cli import main
 from kkl_bench.estimator import Estimator
 from kkl_bench.registry import estimators

@@ -16,14 +16,14 @@ which both engines diverge (a non-finite estimate: the same score, ``inf``) agre
 import numpy as np
 import pytest
 from filterpy.kalman import MerweScaledSigmaPoints
-from kkl_bench.estimators import kalman_kernels, kalman_large
+from kkl_bench.estimators.filters import kalman_kernels, kalman_large
 from kkl_bench.systems.lorenz96 import lorenz96
 
 from kkl_bench import variants
 from kkl_bench.protocol.metrics import diverged
 from kkl_bench.protocol.system import ReadThrough
-from kkl_bench.spec import RunSpec, fit_context_for_row, fit_groups
-from kkl_bench.task import get_profile, make_test_set
+from kkl_bench.run.spec import RunSpec, fit_context_for_row, fit_groups
+from kkl_bench.suite.task import get_profile, make_test_set
 from kkl_bench.testing import check_estimator
 
 FILTERS = ("ekf", "ukf", "enkf", "particle_filter[n=100]")

@@ -5,12 +5,12 @@ import re
 import numpy as np
 import pandas as pd
 
-from kkl_bench import findings
-from kkl_bench.findings import Claim, claim_frame, tally
+from kkl_bench.analysis import findings
+from kkl_bench.analysis.findings import Claim, claim_frame, tally
+from kkl_bench.analysis.significance import compare
+from kkl_bench.analysis.summary import summary_table
 from kkl_bench.report import markdown
 from kkl_bench.report.board import Board, finding_sections
-from kkl_bench.significance import compare
-from kkl_bench.summary import summary_table
 
 BASE = np.linspace(0.1, 0.4, 8)
 

@@ -4,13 +4,14 @@ import math
 
 import pandas as pd
 
-from kkl_bench import fit_times
 from kkl_bench.cli import main
 from kkl_bench.protocol import N_SAMPLES
+from kkl_bench.run import fit_times
 
 
 def cell(estimator, seed, spent_s, us_per_step, status="ok", n_test=5):
-    report = {"spent": {"phase1": {"seconds": spent_s / 2}, "phase2": {"seconds": spent_s / 2}}}
+    phase = {"steps": 100, "seconds": spent_s / 2}
+    report = {"spent": {"phase1": phase, "phase2": phase}}
     return {
         "profile": "quick", "estimator": estimator, "system": "duffing", "seed": seed,
         "status": status, "fit_report": report if spent_s else {}, "fit_time_s": 0.5,

@@ -5,9 +5,9 @@ import pytest
 import torch
 from torch import nn
 
-from kkl_bench import flops
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.latent import LatentObserver
+from kkl_bench.support import flops
 
 
 def test_torch_layers_are_counted_by_their_sizes():
@@ -17,7 +17,7 @@ def test_torch_layers_are_counted_by_their_sizes():
 
 def test_a_compiled_function_is_counted_by_the_products_it_computes():
     """The counter cannot see into compiled code: inside a count it runs eagerly."""
-    from kkl_bench.devices import compile_failure
+    from kkl_bench.support.devices import compile_failure
 
     if compile_failure() is not None:
         pytest.skip(f"torch.compile fails here: {compile_failure()}")

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from kkl_bench import results
 from kkl_bench.estimator import Estimator
-from kkl_bench.harness import RunSpec, run
-from kkl_bench.results import load_results
-from kkl_bench.task import get_profile
+from kkl_bench.run.harness import RunSpec, run
+from kkl_bench.run.results import load_results
+from kkl_bench.suite.task import get_profile
+from kkl_bench.support import provenance as provenance_module
 
 
 class CentreOfBox(Estimator):
@@ -125,16 +125,16 @@ def test_cells_record_the_commit_checked_out_when_the_job_started(
 ):
     class CheckoutMovesDuringFit(CentreOfBox):
         def fit(self, context):
-            monkeypatch.setattr(results, "_git_commit", lambda: "moved-on")
+            monkeypatch.setattr(provenance_module, "_git_commit", lambda: "moved-on")
             return super().fit(context)
 
     register_estimator("checkout_moves", CheckoutMovesDuringFit)
-    monkeypatch.setattr(results, "_git_commit", lambda: "at-start")
-    results._static_provenance.cache_clear()
+    monkeypatch.setattr(provenance_module, "_git_commit", lambda: "at-start")
+    provenance_module._static_provenance.cache_clear()
     try:
         summary = run(spec_for("checkout_moves", tmp_path))
     finally:
-        results._static_provenance.cache_clear()
+        provenance_module._static_provenance.cache_clear()
     assert {cell.provenance["git_commit"] for cell in summary.scored} == {"at-start"}
 
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from kkl_bench.estimators.kalmannet import KalmanNet
+from kkl_bench.estimators.learned.kalmannet import KalmanNet
 
 from kkl_bench.registry import regimes
 from tests.test_kkl import HarmonicOscillator, context_for
@@ -37,7 +37,7 @@ def test_kalmannet_approaches_the_kalman_filter_on_a_linear_system(tmp_path):
 def test_the_warm_start_gain_is_the_steady_state_kalman_gain_on_a_linear_system(tmp_path):
     """On a linear system the EKF is the Kalman filter, whose gain converges to the one of
     the discrete algebraic Riccati equation: ``ekf_mean_gain`` averages it."""
-    from kkl_bench.estimators.kalmannet import ekf_mean_gain
+    from kkl_bench.estimators.learned.kalmannet import ekf_mean_gain
     from scipy.linalg import solve_discrete_are
 
     from kkl_bench.protocol.simulate import rk4_step_jacobian
@@ -62,7 +62,7 @@ def test_the_warm_started_correction_trains_at_a_tenth_of_the_rate(
     tmp_path, monkeypatch, gain_init, scale
 ):
     """A correction to a filter that tracks takes smaller steps (protocol section 6.2)."""
-    from kkl_bench.estimators import kalmannet
+    from kkl_bench.estimators.learned import kalmannet
 
     seen = {}
 
@@ -81,10 +81,10 @@ def test_the_compiled_step_computes_the_eager_steps_estimates_and_gradients():
     samples of Duffing the estimates and every parameter's gradient agree with the eager
     step's to float32 rounding (protocol section 6.5)."""
     import torch
-    from kkl_bench.estimators.kalmannet import KalmanNetFilter
+    from kkl_bench.estimators.learned.kalmannet import KalmanNetFilter
 
-    from kkl_bench.devices import compile_failure
     from kkl_bench.registry import systems
+    from kkl_bench.support.devices import compile_failure
 
     if compile_failure() is not None:
         pytest.skip(f"torch.compile fails here: {compile_failure()}")
@@ -112,7 +112,7 @@ def test_a_fit_compiles_its_step_when_its_budget_asks_and_torch_can(
 ):
     """The model is cached under whether its step was compiled; where torch cannot
     compile, a warning names why and training runs eagerly."""
-    from kkl_bench.estimators import kalmannet
+    from kkl_bench.estimators.learned import kalmannet
 
     seen = {}
 

@@ -1,5 +1,5 @@
 """Filter kernels bound to a model's functions are compiled once per machine
-(kkl_bench.kernel_cache): the same results, and the next process loads them."""
+(kkl_bench.support.kernel_cache): the same results, and the next process loads them."""
 
 import functools
 import subprocess
@@ -9,13 +9,13 @@ import numba
 import numpy as np
 import pytest
 
-from kkl_bench import kernel_cache
 from kkl_bench.protocol import compiled
 from kkl_bench.registry import systems
+from kkl_bench.support import kernel_cache
 
 BOUND_STEP = """
 import numpy as np
-from kkl_bench.kernel_cache import bind
+from kkl_bench.support.kernel_cache import bind
 from kkl_bench.protocol import compiled
 from kkl_bench.registry import systems
 

@@ -6,14 +6,16 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from kkl_bench.estimators.dynamic_hyperkkl import SHARED_WINDOW
-from kkl_bench.estimators.injection_kkl import ExactInjection
+from kkl_bench.estimators.learned.dynamic_hyperkkl import SHARED_WINDOW
+from kkl_bench.estimators.learned.injection_kkl import ExactInjection
 from scipy.integrate import solve_ivp
 from scipy.linalg import solve_sylvester
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl import autonomous, optimize
-from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomous, training_boxes
+from kkl_bench.kkl import decoder as decoder_module
+from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomous
+from kkl_bench.kkl.boxes import training_boxes
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import select_gain
 from kkl_bench.kkl.hyper import ChunkedHead, LowRankHead, make_head
@@ -664,7 +666,8 @@ def test_checkpoints_are_reused_and_invalidated(tmp_path, monkeypatch):
         calls.append(kwargs.get("description"))
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(autonomous, "minimize", counting)
+    monkeypatch.setattr(autonomous, "minimize", counting)  # the encoder's training
+    monkeypatch.setattr(decoder_module, "minimize", counting)  # the decoders' trainings
     system = systems.get("vdp")()
     config = Phase1Config(
         hidden=16,

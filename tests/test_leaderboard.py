@@ -7,12 +7,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench import comparisons
-from kkl_bench.comparisons import limit_frame
-from kkl_bench.leaderboard import grid_tables, render, track_summary_table
+from kkl_bench.analysis import comparisons
+from kkl_bench.analysis.comparisons import limit_frame
+from kkl_bench.analysis.leaderboard import grid_tables, track_summary_table
+from kkl_bench.analysis.significance import mark_column, ratio_lower_bound
+from kkl_bench.analysis.summary import (
+    paper_results,
+    summary_table,
+    track_summary,
+    unsupported_reasons,
+)
 from kkl_bench.report.markdown import table
-from kkl_bench.significance import mark_column, ratio_lower_bound
-from kkl_bench.summary import paper_results, summary_table, track_summary, unsupported_reasons
+from kkl_bench.report.text import render
 
 
 def results_frame(entries=(("good", [0.1, 0.3]), ("bad", [1.0, 3.0]), ("broken", [0.1, math.inf]))):

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from kkl_bench.estimators.enkf import (
+from kkl_bench.estimators.filters.enkf import (
     LocalTaper,
     gaspari_cohn,
     local_transform,
@@ -14,8 +14,8 @@ from kkl_bench import variants
 from kkl_bench.measurement import MeasurementModel
 from kkl_bench.protocol.system import Ring
 from kkl_bench.registry import regimes, systems
-from kkl_bench.spec import RunSpec, make_fit_context
-from kkl_bench.task import get_profile
+from kkl_bench.run.spec import RunSpec, make_fit_context
+from kkl_bench.suite.task import get_profile
 
 
 def ensembles(batch=3, members=6, n_x=8, n_y=4, seed=0):

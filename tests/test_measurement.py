@@ -5,20 +5,20 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from kkl_bench.estimators.kalmannet import KalmanNetFilter
+from kkl_bench.estimators.learned.kalmannet import KalmanNetFilter
 from scipy import integrate
 
 from kkl_bench import registry, variants
 from kkl_bench.estimator import Estimator
-from kkl_bench.harness import RunSpec, rows_and_tasks, run
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices
 from kkl_bench.kkl.sequence import inputs
 from kkl_bench.measurement import MeasurementModel, NoiseLaw, Quantized, Saturating, held
 from kkl_bench.protocol.simulate import rk4_step
-from kkl_bench.results import load_results
-from kkl_bench.spec import PROTOCOL_CONDITIONS, conditioned_context, fit_context_for_row
-from kkl_bench.task import Task, build_test_set, get_profile
-from kkl_bench.tracks import TRACKS_ENV, TrackError, load_tracks, parse_track
+from kkl_bench.run.harness import RunSpec, rows_and_tasks, run
+from kkl_bench.run.results import load_results
+from kkl_bench.run.spec import PROTOCOL_CONDITIONS, conditioned_context, fit_context_for_row
+from kkl_bench.suite.task import Task, build_test_set, get_profile
+from kkl_bench.suite.tracks import TRACKS_ENV, TrackError, load_tracks, parse_track
 
 TRACK = """
 name = "sensing"
@@ -103,10 +103,10 @@ def test_bad_measurement_fields_are_named_with_the_valid_choices():
 
 def test_a_measurement_model_round_trips_through_track_test_set_and_fit_context(sensing_track):
     duffing, lorenz = (Task(s, "all-three", 1, "sensing") for s in ("duffing", "lorenz"))
-    measurement = duffing.definition().measurement
+    measurement = duffing.definition.measurement
     assert measurement == MeasurementModel(Quantized(0.5), 4, NoiseLaw("student-t", 0.2, dof=3.0))
-    assert lorenz.definition().measurement.sensor == Quantized(5.0)
-    assert lorenz.definition().sigma_v == 2.0
+    assert lorenz.definition.measurement.sensor == Quantized(5.0)
+    assert lorenz.definition.sigma_v == 2.0
 
     test_set = build_test_set(duffing, 3)
     y = test_set.data.y
@@ -260,7 +260,7 @@ def test_headroom_measures_the_ukf_against_the_limit_on_validation_streams(capsy
 
 
 def test_an_ensemble_that_blew_up_is_reported_as_diverged_not_raised():
-    from kkl_bench.spec import conditioned_context as context_for
+    from kkl_bench.run.spec import conditioned_context as context_for
 
     enkf = variants.build("enkf[inflation=1.0]").fit(context_for("duffing", 0))
     ensemble = np.zeros((2, 24, 2))

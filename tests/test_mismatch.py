@@ -8,15 +8,15 @@ import pytest
 
 from kkl_bench import variants
 from kkl_bench.estimator import Estimator
-from kkl_bench.harness import RunSpec, plan, run
-from kkl_bench.plants import LOGGED_TRAJECTORIES, logged_data, parameter_factors, true_plant
 from kkl_bench.protocol import N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.streams import TestStreamAccessError, sealed_test_streams
 from kkl_bench.registry import systems
-from kkl_bench.results import read_cell
-from kkl_bench.task import Task, build_test_set, get_profile
-from kkl_bench.tracks import Plant, TrackError, get_track, parse_track
+from kkl_bench.run.harness import RunSpec, plan, run
+from kkl_bench.run.results import read_cell
+from kkl_bench.suite.plants import LOGGED_TRAJECTORIES, logged_data, parameter_factors, true_plant
+from kkl_bench.suite.task import Task, build_test_set, get_profile
+from kkl_bench.suite.tracks import Plant, TrackError, get_track, parse_track
 
 TRACK = get_track("mismatch")
 PARAMS25 = TRACK.task("params25-sinusoid").plant

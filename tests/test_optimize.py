@@ -5,10 +5,10 @@ import types
 import pytest
 import torch
 
-from kkl_bench import convergence
 from kkl_bench.kkl import optimize
 from kkl_bench.kkl.plateau import Plateau, PlateauRule
-from kkl_bench.results import provenance
+from kkl_bench.support import convergence
+from kkl_bench.support.provenance import provenance
 
 
 class Interrupted(Exception):

@@ -3,10 +3,9 @@ weights, the Kalman filter on a linear system, and convergence in the particle c
 
 import numpy as np
 import pytest
-from kkl_bench.estimators.kalman import box_prior
-from kkl_bench.estimators.particle_filter import (
-    PROPOSALS,
-    ParticleFilter,
+from kkl_bench.estimators.filters.kalman import box_prior
+from kkl_bench.estimators.filters.particle_filter import PROPOSALS, ParticleFilter
+from kkl_bench.estimators.filters.particle_proposals import (
     gaussian_log_density,
     optimal_proposal,
     systematic_resample,
@@ -151,7 +150,7 @@ def test_the_mixture_proposal_is_the_optimal_one_for_outlier_noise():
     """With a linear output, the optimal proposal makes the incremental weight
     p(y | s) N(s; m, q) / q(s) the same for every draw: p(y | x), the mixture of the
     components' Gaussian marginals."""
-    from kkl_bench.estimators.particle_filter import mixture_proposal, optimal_proposal
+    from kkl_bench.estimators.filters.particle_proposals import mixture_proposal, optimal_proposal
 
     from kkl_bench.measurement import NoiseLaw
 
@@ -184,7 +183,7 @@ def test_the_initial_proposal_is_the_posterior_for_a_linear_output():
     Gaussian prior: the weight p(y0 | x) N(x; m, P) / q(x) is the same for every particle
     (the mixture of the components' predictive densities), whichever component an
     outlier-law draw took; one component is the Kalman update."""
-    from kkl_bench.estimators.particle_filter import initial_proposal
+    from kkl_bench.estimators.filters.particle_proposals import initial_proposal
 
     from kkl_bench.measurement import NoiseLaw
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from kkl_bench.cost import COST_FILE, read_costs
+from kkl_bench.analysis.cost import COST_FILE, read_costs
 from kkl_bench.report.publish import MANIFEST
 
 pytest.importorskip("matplotlib")

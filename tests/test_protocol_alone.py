@@ -43,8 +43,8 @@ def plant_factors(system: str, plant: str) -> dict[str, float]:
 
 @pytest.mark.parametrize(("system", "plant"), list(PLANT_TABLE))
 def test_a_mismatch_plant_is_derived_from_the_protocol_alone(system, plant):
-    from kkl_bench.plants import parameter_factors  # what the suite draws
-    from kkl_bench.tracks import get_track
+    from kkl_bench.suite.plants import parameter_factors  # what the suite draws
+    from kkl_bench.suite.tracks import get_track
 
     derived = plant_factors(system, plant)
     assert derived == pytest.approx(PLANT_TABLE[system, plant])

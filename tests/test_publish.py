@@ -13,12 +13,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench import figures
+from kkl_bench.analysis import figures
 from kkl_bench.cli import main
 from kkl_bench.estimator import Estimator
-from kkl_bench.harness import RunSpec, run
 from kkl_bench.registry import estimators
-from kkl_bench.task import get_profile
+from kkl_bench.run.harness import RunSpec, run
+from kkl_bench.suite.task import get_profile
 
 pytest.importorskip("matplotlib")
 
@@ -331,7 +331,7 @@ def test_the_page_leads_with_the_board_switches_tracks_sorts_and_filters_in_a_br
 
 def test_a_cost_measurement_replaces_the_scoring_runs_times(results, tmp_path):
     """With a ``kkl-bench cost`` file in the folder, the cost table shows its times."""
-    from kkl_bench.cost import COLUMNS, COST_FILE
+    from kkl_bench.analysis.cost import COLUMNS, COST_FILE
 
     measured = {
         "estimator": "ekf",

@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 
 from kkl_bench.estimator import Estimator, FitContext
-from kkl_bench.harness import RunSpec, run
 from kkl_bench.measurement import MeasurementModel, NoiseLaw
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
-from kkl_bench.task import get_profile
+from kkl_bench.run.harness import RunSpec, run
+from kkl_bench.suite.task import get_profile
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

@@ -6,11 +6,11 @@ import json
 import pandas as pd
 import pytest
 
-from kkl_bench import harness, ledger, regenerate
 from kkl_bench.cli import main
-from kkl_bench.harness import Job
-from kkl_bench.results import load_results
-from kkl_bench.task import Task, get_profile
+from kkl_bench.run import harness, ledger, regenerate
+from kkl_bench.run.harness import Job
+from kkl_bench.run.results import load_results
+from kkl_bench.suite.task import Task, get_profile
 
 PROFILE = get_profile("quick")
 

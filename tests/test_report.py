@@ -7,9 +7,9 @@ import math
 import pandas as pd
 import pytest
 
+from kkl_bench.analysis.document import HTML, MARKDOWN, Code, Figure, Section, Table, Text
 from kkl_bench.report import html, markdown
 from kkl_bench.report import publish as publishing
-from kkl_bench.report.model import HTML, MARKDOWN, Code, Figure, Section, Table, Text
 
 
 def sample() -> list[Section]:
@@ -92,7 +92,7 @@ def test_a_section_added_to_the_board_reaches_the_readme_and_the_page(monkeypatc
 
 
 def test_no_ratio_is_drawn_against_a_diverged_ukf_and_rows_that_run_nowhere_are_left_out():
-    from kkl_bench.figures import relative_ratios
+    from kkl_bench.analysis.figures import relative_ratios
 
     summary = pd.DataFrame(
         {

@@ -8,8 +8,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from kkl_bench import results
-from kkl_bench.results import (
+from kkl_bench.run.results import (
     CellResult,
     KeptEstimate,
     cell_path,
@@ -20,6 +19,7 @@ from kkl_bench.results import (
     trajectory_table,
     write_cell,
 )
+from kkl_bench.support import provenance as provenance_module
 
 
 def make_cell(**overrides):
@@ -113,10 +113,10 @@ def test_the_commit_is_dirty_for_changed_code_not_for_changed_results(tmp_path):
     git("init", "-q")
     git("add", ".")
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "start")
-    clean = results._git_commit(tmp_path)
+    clean = provenance_module._git_commit(tmp_path)
     assert clean and not clean.endswith("-dirty")
     (tmp_path / "leaderboard" / "cell.json").write_text('{"rmse": 0.1}\n')  # a run wrote
-    assert results._git_commit(tmp_path) == clean
+    assert provenance_module._git_commit(tmp_path) == clean
     (tmp_path / "code.py").write_text("x = 2\n")
-    assert results._git_commit(tmp_path) == clean + "-dirty"
-    assert results._git_commit(tmp_path.parent / "absent") is None
+    assert provenance_module._git_commit(tmp_path) == clean + "-dirty"
+    assert provenance_module._git_commit(tmp_path.parent / "absent") is None

@@ -9,7 +9,7 @@ import subprocess
 import pytest
 
 from kkl_bench.cli import main
-from kkl_bench.results import DamagedCellError, read_cell
+from kkl_bench.run.results import DamagedCellError, read_cell
 from tests.test_executors import run_command
 
 ARGS = ["--estimator", "ekf", "--system", "vdp", "--regime", "zero", "square"]
@@ -132,7 +132,7 @@ def test_two_runs_on_one_results_folder_score_each_cell_once(tmp_path):
 def test_a_write_that_fails_part_way_leaves_no_file_and_a_clear_error(
     tmp_path, monkeypatch, capsys
 ):
-    from kkl_bench import results as store
+    from kkl_bench.run import results as store
 
     def full_disk(descriptor):
         raise OSError(errno.ENOSPC, "No space left on device")

@@ -3,15 +3,20 @@
 import numpy as np
 import pytest
 import torch
-from kkl_bench.estimators.ring_observer import NUDGING, LocalRingFilter, RingLayout, RingObserver
+from kkl_bench.estimators.learned.ring_observer import (
+    NUDGING,
+    LocalRingFilter,
+    RingLayout,
+    RingObserver,
+)
 
 from kkl_bench import variants
 from kkl_bench.kkl.sequence import inputs
 from kkl_bench.measurement import MeasurementModel
 from kkl_bench.protocol.system import Ring
 from kkl_bench.registry import regimes, systems
-from kkl_bench.spec import RunSpec, make_fit_context
-from kkl_bench.task import get_profile
+from kkl_bench.run.spec import RunSpec, make_fit_context
+from kkl_bench.suite.task import get_profile
 
 
 def network(n: int, observed_channel: bool = False, seed: int = 0) -> LocalRingFilter:

@@ -7,10 +7,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from kkl_bench import convergence, scaling
+from kkl_bench.analysis import scaling, scaling_timing
 from kkl_bench.report import markdown
 from kkl_bench.report.scaling import study_section, write_study
-from kkl_bench.task import get_profile
+from kkl_bench.suite.task import get_profile
+from kkl_bench.support import convergence
 
 REGIMES = ("zero", "constant", "sinusoid", "square")
 
@@ -213,7 +214,7 @@ def timings(pairs, cost, engines=("numpy",)):
 def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_engine_beside():
     pairs = [("ekf", 40), ("kkl", 40)]
     reference = {"compiled": 1.0, "reference": 50.0}
-    frame = scaling.timing_frame(
+    frame = scaling_timing.timing_frame(
         timings(pairs, lambda name, n, engine: reference[engine], ("compiled", "reference"))
         .query("estimator == 'ekf' or engine == 'compiled'")
         .assign(engine_used=lambda f: f["engine"].where(f["estimator"] == "ekf", "torch")),
@@ -242,7 +243,7 @@ def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_engine_besi
 
 def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
     pairs = [("ekf", 5), ("ekf", 10), ("kkl", 5)]
-    first = scaling.timing_frame(timings(pairs, lambda _, n: n), commit="1234e56")
+    first = scaling_timing.timing_frame(timings(pairs, lambda _, n: n), commit="1234e56")
     assert first.set_index(["estimator", "n"]).loc[("kkl", 5), "ekf_us_per_step_batch20"] == 100
     results = pd.DataFrame(
         cells("ekf", 5, 0.1, 0.0)
@@ -253,16 +254,16 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
     )
     summary = scaling.cell_summary(results)
     write_study(summary, first, "standard", tmp_path)
-    stored = scaling.stored_timings(tmp_path / "scaling.csv")
+    stored = scaling_timing.stored_timings(tmp_path / "scaling.csv")
     pd.testing.assert_frame_equal(stored, first, check_dtype=False)
 
     # kkl at n = 10 was fitted since; the failed gru cell is not timed
-    wanted = scaling.untimed(summary, stored)
+    wanted = scaling_timing.untimed(summary, stored)
     assert wanted == [("ekf", 10), ("kkl", 10)]
-    second = scaling.timing_frame(
+    second = scaling_timing.timing_frame(
         timings(wanted, lambda name, n: 3 * n if name == "ekf" else n), commit="f00d"
     )
-    merged = scaling.add_timings(stored, second).set_index(["estimator", "n"])
+    merged = scaling_timing.add_timings(stored, second).set_index(["estimator", "n"])
     assert merged.loc[("kkl", 10), "timing_run"] == 2
     assert merged.loc[("kkl", 10), "ekf_us_per_step_batch20"] == 600  # its run's EKF
     assert merged.loc[("ekf", 10), "us_per_step_batch20"] == 200  # the stored EKF stays
@@ -278,7 +279,7 @@ def test_a_later_timing_run_adds_the_missing_rows_beside_its_own_ekf(tmp_path):
         "Timing run 2 (code of commit f00d) added `kkl` at n = 10, beside the EKF at the same sizes (EKF in run 2: "
         "n = 10: 600 and 30 µs/step at batch 20 and 1 (run 1: 200 and 10))." in text
     )
-    assert scaling.untimed(summary, merged.reset_index()) == []
+    assert scaling_timing.untimed(summary, merged.reset_index()) == []
     assert "| kkl         | 0.58   | 0.00       | 1.00 †             | 1.00 †            |" in text
     assert "† fitted to online costs from more than one timing run" in text
 
@@ -288,14 +289,14 @@ def test_a_study_written_before_timing_runs_were_recorded_reads_as_run_one(tmp_p
         columns=["timing_run", "ekf_us_per_step_batch20", "ekf_us_per_step_batch1"]
     )
     legacy.to_csv(tmp_path / "scaling.csv", index=False)
-    stored = scaling.stored_timings(tmp_path / "scaling.csv").set_index(["estimator", "n"])
+    stored = scaling_timing.stored_timings(tmp_path / "scaling.csv").set_index(["estimator", "n"])
     assert (stored["timing_run"] == 1).all()
     models = stored["models"].unstack("n")
     assert (models.loc["kkl"] == "trained").all()  # every study before timed the cache's
     assert (models.loc["ekf"] == "").all()  # a filter has no models to time
     assert stored.loc[("kkl", 40), "ekf_us_per_step_batch1"] == pytest.approx(3200.0)
-    assert scaling.stored_timings(None).empty
-    assert scaling.stored_timings(tmp_path / "absent.csv").empty
+    assert scaling_timing.stored_timings(None).empty
+    assert scaling_timing.stored_timings(tmp_path / "absent.csv").empty
 
 
 def test_report_states_exponents_crossovers_and_failures():
@@ -360,7 +361,11 @@ def test_curve_frame_gives_each_training_once_at_the_size_it_trained_at(tmp_path
     ]
     assert curves[curves["estimator"] == "moved"]["error"].tolist() == [1.0, 0.2, 0.1]
     written = write_study(
-        scaling.cell_summary(results), scaling.stored_timings(None), "standard", tmp_path, curves
+        scaling.cell_summary(results),
+        scaling_timing.stored_timings(None),
+        "standard",
+        tmp_path,
+        curves,
     )
     assert (tmp_path / "figures" / "scaling-curves.png") in written
     assert (
@@ -386,7 +391,7 @@ def test_a_timing_run_of_untrained_models_is_recorded_and_said():
     )  # fmt: skip
     texts = {}
     for models in scaling.MODELS:
-        frame = scaling.timing_frame(timings(pairs, lambda name, n: 2.0), "abc", models)
+        frame = scaling_timing.timing_frame(timings(pairs, lambda name, n: 2.0), "abc", models)
         rows = frame.set_index("estimator")["models"]
         assert rows.to_dict() == {"autonomous_kkl": models, "ekf": ""}  # a filter has none
         texts[models] = render_scaling(scaling.scaling_frame(summary, frame), "standard")
@@ -397,16 +402,16 @@ def test_a_timing_run_of_untrained_models_is_recorded_and_said():
 def test_untrained_models_take_the_published_fits_choices(tmp_path):
     """An injection gain of zero chosen on data skips the injection: the untrained model
     must skip it too, whatever gain its cut-short training would choose."""
-    spec = scaling.RunSpec(
+    spec = scaling_timing.RunSpec(
         ("injection_kkl",), ("lorenz96-n5",), ("sinusoid",), get_profile("quick"),
         tracks=(scaling.TRACK,), cache_dir=tmp_path,
     )  # fmt: skip
     report = {"training_log": {"injection_gain": 0.0}}
     results = pd.DataFrame(cells("injection_kkl", 5, 0.1, 1.0, report=report))
-    published = scaling.published_report(results, "injection_kkl", 5, seed=0)
+    published = scaling_timing.published_report(results, "injection_kkl", 5, seed=0)
     assert published == report
-    assert scaling.published_report(results, "injection_kkl", 10, seed=0) == {}
-    (fitted,) = scaling.fit_untrained(spec, "injection_kkl", 5, 0, published).values()
+    assert scaling_timing.published_report(results, "injection_kkl", 10, seed=0) == {}
+    (fitted,) = scaling_timing.fit_untrained(spec, "injection_kkl", 5, 0, published).values()
     assert fitted.gain_ == 0.0
     last_steps = {curve[-1][0] for _, curve in convergence.curves(fitted.fit_report())}
-    assert 2 + scaling.UNTRAINED_STEPS in last_steps  # Phase 1's trainings were cut short
+    assert 2 + scaling_timing.UNTRAINED_STEPS in last_steps  # Phase 1's trainings were cut short

@@ -6,13 +6,13 @@ import math
 
 import numpy as np
 import pytest
-from kkl_bench.estimators.kalman import INFLATIONS, THRESHOLDS, huber_noise
+from kkl_bench.estimators.filters.kalman import INFLATIONS, THRESHOLDS, huber_noise
 
 from kkl_bench import variants
 from kkl_bench.measurement import MeasurementModel, Quantized, Saturating, filter_system
 from kkl_bench.registry import systems
-from kkl_bench.spec import RunSpec, fit_context_for_row
-from kkl_bench.task import get_profile, make_test_set
+from kkl_bench.run.spec import RunSpec, fit_context_for_row
+from kkl_bench.suite.task import get_profile, make_test_set
 
 
 def spec(tmp_path, track):

@@ -9,8 +9,8 @@ import time
 
 import torch
 
-from kkl_bench import status
 from kkl_bench.kkl.optimize import minimize
+from kkl_bench.support import status
 
 
 def test_a_job_states_what_it_does_and_its_file_goes_with_it(tmp_path):

@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 import torch
-from kkl_bench.estimators import kalman_unrolled
+from kkl_bench.estimators.filters import kalman_unrolled
 from kkl_bench.systems.lorenz96 import lorenz96
 
 from kkl_bench.kkl.latent import LatentObserver, latent_matrices, spread_eigenvalues
 from kkl_bench.protocol import DT
 from kkl_bench.protocol.simulate import simulate
 from kkl_bench.registry import systems
-from kkl_bench.system_checks import check_system, run_system_checks
 from kkl_bench.testing import check_estimator
+from kkl_bench.testing.systems import check_system, run_system_checks
 from tests.budgets import few_steps
 
 NEW_SYSTEMS = [

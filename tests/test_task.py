@@ -8,8 +8,8 @@ import pytest
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.streams import TestStreamAccessError, sealed_test_streams
 from kkl_bench.registry import systems
-from kkl_bench.spec import RunSpec, make_fit_context
-from kkl_bench.task import ProfileError, Task, get_profile, load_profiles, make_test_set
+from kkl_bench.run.spec import RunSpec, make_fit_context
+from kkl_bench.suite.task import ProfileError, Task, get_profile, load_profiles, make_test_set
 
 
 @pytest.mark.parametrize(

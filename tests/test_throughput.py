@@ -9,10 +9,10 @@ import pandas as pd
 import pytest
 import torch
 
-from kkl_bench import throughput
+from kkl_bench.analysis import throughput
 from kkl_bench.cli import main
 from kkl_bench.kkl.optimize import minimize, probing
-from kkl_bench.task import get_profile
+from kkl_bench.suite.task import get_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 

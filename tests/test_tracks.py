@@ -10,8 +10,8 @@ import pytest
 
 from kkl_bench.cli import main
 from kkl_bench.protocol.streams import root_seed
-from kkl_bench.task import Task, make_test_set
-from kkl_bench.tracks import (
+from kkl_bench.suite.task import Task, make_test_set
+from kkl_bench.suite.tracks import (
     TRACKS_ENV,
     TrackError,
     broken_tracks,

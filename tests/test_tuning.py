@@ -1,11 +1,11 @@
-"""Choosing a model-based row's setting on validation streams (kkl_bench.tuning)."""
+"""Choosing a model-based row's setting on validation streams (kkl_bench.fitting.tuning)."""
 
 import warnings
 
 import numpy as np
 import pytest
 
-from kkl_bench.tuning import choose, validation_error
+from kkl_bench.fitting.tuning import choose, validation_error
 
 
 def test_the_validation_error_is_the_rmse_over_the_scored_window():

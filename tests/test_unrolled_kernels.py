@@ -1,4 +1,4 @@
-"""The unrolled EKF and UKF (``estimators/kalman_unrolled.py``) against the generic kernels.
+"""The unrolled EKF and UKF (``estimators/filters/kalman_unrolled.py``) against the generic kernels.
 
 An unrolled kernel performs the generic kernel's operations in the generic kernel's
 order, so the two agree bit for bit, NaN where a trajectory stopped included. Two cases
@@ -11,7 +11,7 @@ noise, a sensor) with missing samples and a batch that is not a multiple of the 
 import numpy as np
 import pytest
 from filterpy.kalman import MerweScaledSigmaPoints
-from kkl_bench.estimators import kalman_kernels, kalman_unrolled
+from kkl_bench.estimators.filters import kalman_kernels, kalman_unrolled
 
 from kkl_bench.measurement import Quantized, Saturating, SensedSystem
 from kkl_bench.protocol.scalar_source import Program, UntraceableError, scalars

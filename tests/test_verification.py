@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from kkl_bench.cli import main
-from kkl_bench.results import read_cell
-from kkl_bench.verification import (
+from kkl_bench.run.results import read_cell
+from kkl_bench.run.verification import (
     DRIFTED,
     IDENTICAL,
     VERIFICATION_FILE,

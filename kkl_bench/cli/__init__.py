@@ -4,6 +4,8 @@ Thin by design: each subcommand's module declares its arguments beside the
 code that runs it (``add_parser``), and calls the harness, the leaderboard,
 the reporting layer or the conformance kit. ``main`` only dispatches and turns
 the errors a user can fix into one line and exit status 2.
+
+Layer: the top; it may import every other layer, and none imports it.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 
 from kkl_bench.cli import admin, publishing, regenerate, run, tables, verify
 from kkl_bench.registry import PluginLoadError, UnknownNameError
-from kkl_bench.task import ProfileError
+from kkl_bench.suite.task import ProfileError
 
 EXAMPLES = """\
 examples:

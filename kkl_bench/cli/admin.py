@@ -10,17 +10,18 @@ from pathlib import Path
 
 import pandas as pd
 
-from kkl_bench import families, fit_times, variants
-from kkl_bench.cache import cache_info, clear_cache, default_cache_dir
+from kkl_bench import families, variants
+from kkl_bench.analysis.headroom import headroom
 from kkl_bench.cli.common import add_cache_argument, names
-from kkl_bench.headroom import headroom
 from kkl_bench.measurement import sensors
 from kkl_bench.registry import estimators, regimes, systems
-from kkl_bench.results import load_results
-from kkl_bench.system_checks import run_system_checks
-from kkl_bench.task import Task, load_profiles
+from kkl_bench.run import fit_times
+from kkl_bench.run.results import load_results
+from kkl_bench.suite.task import Task, load_profiles
+from kkl_bench.suite.tracks import broken_tracks, get_track, load_tracks
+from kkl_bench.support.cache import cache_info, clear_cache, default_cache_dir
 from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
-from kkl_bench.tracks import broken_tracks, get_track, load_tracks
+from kkl_bench.testing.systems import run_system_checks
 
 
 def add_parser(commands) -> None:

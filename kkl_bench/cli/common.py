@@ -9,9 +9,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from kkl_bench import summary, variants
+from kkl_bench import variants
+from kkl_bench.analysis import summary
 from kkl_bench.registry import estimators
-from kkl_bench.results import DamagedCellError, load_results
+from kkl_bench.run.results import DamagedCellError, load_results
 
 
 def names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:

@@ -10,8 +10,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from kkl_bench import harness, leaderboard
-from kkl_bench.cache import default_cache_dir
+from kkl_bench.analysis import leaderboard
+from kkl_bench.analysis.findings import PAPER_SYSTEMS
+from kkl_bench.analysis.significance import MARGIN
+from kkl_bench.analysis.summary import summary_table
 from kkl_bench.cli.common import (
     add_cache_argument,
     add_drawing_arguments,
@@ -24,14 +26,13 @@ from kkl_bench.cli.common import (
     positive_integer,
     seed,
 )
-from kkl_bench.findings import PAPER_SYSTEMS
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators, systems
 from kkl_bench.report import markdown
-from kkl_bench.results import provenance
-from kkl_bench.significance import MARGIN
-from kkl_bench.summary import summary_table
-from kkl_bench.task import get_profile
+from kkl_bench.run import harness
+from kkl_bench.suite.task import get_profile
+from kkl_bench.support.cache import default_cache_dir
+from kkl_bench.support.provenance import provenance
 
 
 def add_parser(commands) -> None:
@@ -212,7 +213,7 @@ def draw(args: argparse.Namespace) -> int:
 
 
 def scaling_study(args: argparse.Namespace) -> int:
-    from kkl_bench import scaling
+    from kkl_bench.analysis import scaling, scaling_timing
     from kkl_bench.report.scaling import write_study
 
     results, damaged = load(args)
@@ -228,20 +229,20 @@ def scaling_study(args: argparse.Namespace) -> int:
     )
     commit = provenance()["git_commit"]  # the code that runs, read before anything is loaded
     study = args.out / "scaling.csv"
-    stored = scaling.stored_timings(study if args.missing_only or args.render_only else None)
-    wanted = [] if args.render_only else scaling.untimed(cells, stored)
+    stored = scaling_timing.stored_timings(study if args.missing_only or args.render_only else None)
+    wanted = [] if args.render_only else scaling_timing.untimed(cells, stored)
     with tempfile.TemporaryDirectory() as untrained:  # kept until the models are timed
         fitted = {
             (estimator, n): (
-                scaling.fit_untrained(
+                scaling_timing.fit_untrained(
                     replace(spec, cache_dir=Path(untrained)),
                     estimator,
                     n,
                     args.seed,
-                    scaling.published_report(results, estimator, n, args.seed),
+                    scaling_timing.published_report(results, estimator, n, args.seed),
                 )
                 if args.untrained
-                else scaling.fit_from_cache(spec, estimator, n, args.seed)
+                else scaling_timing.fit_from_cache(spec, estimator, n, args.seed)
             )
             for estimator, n in tqdm(
                 wanted,
@@ -252,8 +253,10 @@ def scaling_study(args: argparse.Namespace) -> int:
         }
         if fitted:
             models = scaling.MODELS[1] if args.untrained else scaling.MODELS[0]
-            timings = scaling.time_estimators(spec, fitted)
-            stored = scaling.add_timings(stored, scaling.timing_frame(timings, commit, models))
+            timings = scaling_timing.time_estimators(spec, fitted)
+            stored = scaling_timing.add_timings(
+                stored, scaling_timing.timing_frame(timings, commit, models)
+            )
     if not fitted and not args.render_only:
         print(f"every fitted estimator already has its online cost in {study}")
     curves = scaling.curve_frame(results, args.seed)
@@ -263,7 +266,7 @@ def scaling_study(args: argparse.Namespace) -> int:
 
 
 def measure_throughput(args: argparse.Namespace) -> int:
-    from kkl_bench import throughput
+    from kkl_bench.analysis import throughput
 
     out = args.out / throughput.THROUGHPUT_FILE
     if not args.render_only:
@@ -285,7 +288,7 @@ def measure_throughput(args: argparse.Namespace) -> int:
 
 
 def time_costs(args: argparse.Namespace) -> int:
-    from kkl_bench import cost
+    from kkl_bench.analysis import cost
 
     spec = harness.RunSpec(
         estimators=names(estimators, args.estimator),

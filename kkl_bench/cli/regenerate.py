@@ -9,13 +9,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from kkl_bench import ledger, regenerate
-from kkl_bench.cache import default_cache_dir
 from kkl_bench.cli.common import add_cache_argument, add_jobs_argument
 from kkl_bench.cli.run import RESUME, showing_jobs
-from kkl_bench.executors import EXECUTORS
-from kkl_bench.results import load_results, provenance
-from kkl_bench.task import get_profile
+from kkl_bench.run import ledger, regenerate
+from kkl_bench.run.results import load_results
+from kkl_bench.suite.task import get_profile
+from kkl_bench.support.cache import default_cache_dir
+from kkl_bench.support.executors import EXECUTORS
+from kkl_bench.support.provenance import provenance
 
 
 def add_parser(commands) -> None:

@@ -14,8 +14,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from kkl_bench import fit_times, harness, status
-from kkl_bench.cache import default_cache_dir
 from kkl_bench.cli.common import (
     add_cache_argument,
     add_jobs_argument,
@@ -24,14 +22,17 @@ from kkl_bench.cli.common import (
     positive_integer,
     seed,
 )
-from kkl_bench.devices import DEVICES
-from kkl_bench.devices import resolve as resolve_device
-from kkl_bench.executors import EXECUTORS
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators, systems
-from kkl_bench.results import provenance
-from kkl_bench.task import get_profile
-from kkl_bench.tracks import load_tracks
+from kkl_bench.run import fit_times, harness
+from kkl_bench.suite.task import get_profile
+from kkl_bench.suite.tracks import load_tracks
+from kkl_bench.support import status
+from kkl_bench.support.cache import default_cache_dir
+from kkl_bench.support.devices import DEVICES
+from kkl_bench.support.devices import resolve as resolve_device
+from kkl_bench.support.executors import EXECUTORS
+from kkl_bench.support.provenance import provenance
 
 DEFAULT_PROFILE = "quick"
 
@@ -236,7 +237,7 @@ def _duration(seconds: float) -> str:
 @contextlib.contextmanager
 def showing_jobs(bar: tqdm, claims: Path, every_s: float = 1.0) -> Iterator[None]:
     """Show beside ``bar``, every ``every_s`` seconds, what each running job says it does
-    (:mod:`kkl_bench.status`): which estimator fits or scores on which system, and how
+    (:mod:`kkl_bench.support.status`): which estimator fits or scores on which system, and how
     far its training is."""
     since, stop = time.time() - 1.0, threading.Event()
 

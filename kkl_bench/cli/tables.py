@@ -4,18 +4,18 @@ from __future__ import annotations
 
 import argparse
 
-from kkl_bench import comparisons, leaderboard
+from kkl_bench.analysis import comparisons, leaderboard
+from kkl_bench.analysis.summary import summary_table, track_summary, version_groups
 from kkl_bench.cli.common import add_reading_arguments, exit_status, load, of_track
 from kkl_bench.protocol.streams import PAPER_TRACK
-from kkl_bench.report import markdown
-from kkl_bench.summary import summary_table, track_summary, version_groups
-from kkl_bench.task import get_profile, load_profiles
-from kkl_bench.tracks import get_track
+from kkl_bench.report import markdown, text
+from kkl_bench.suite.task import get_profile, load_profiles
+from kkl_bench.suite.tracks import get_track
 
 
 def add_parser(commands) -> None:
     board = commands.add_parser("leaderboard", help="print the leaderboard from stored results")
-    board.add_argument("--format", choices=leaderboard.FORMATS, default="markdown")
+    board.add_argument("--format", choices=text.FORMATS, default="markdown")
     add_reading_arguments(board)
     board.add_argument(
         "--track",
@@ -78,7 +78,7 @@ def print_leaderboard(args: argparse.Namespace) -> int:
         if label:
             print(f"\n{label}\n" if args.format == "markdown" else f"# {label}")
         summary = summary_table(cells, with_paper=with_paper)
-        print(leaderboard.render(summary, args.format, settling=settling), end="")
+        print(text.render(summary, args.format, settling=settling), end="")
         if args.details:
             print("\n" + markdown.table(leaderboard.cost_table(summary)))
     return exit_status(args, damaged)

@@ -10,7 +10,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from kkl_bench import verification
 from kkl_bench.cli.common import (
     add_jobs_argument,
     add_out_argument,
@@ -19,7 +18,8 @@ from kkl_bench.cli.common import (
     seed,
 )
 from kkl_bench.cli.run import showing_jobs
-from kkl_bench.results import provenance
+from kkl_bench.run import verification
+from kkl_bench.support.provenance import provenance
 
 
 def add_parser(commands) -> None:

@@ -28,14 +28,13 @@ a Phase 1 that is killed continues from its last checkpoint when rerun.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
 
-from kkl_bench.devices import draw_integers, draw_normal, to_numpy, training_on
 from kkl_bench.estimator import FitContext
+from kkl_bench.kkl.boxes import training_boxes
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import (
@@ -45,7 +44,7 @@ from kkl_bench.kkl.data import (
     observer_data,
     validation_count,
 )
-from kkl_bench.kkl.inputs import FORCED_TRAINING
+from kkl_bench.kkl.decoder import decoder_rmse, train_decoder
 from kkl_bench.kkl.latent import (
     LatentObserver,
     latent_drift,
@@ -59,6 +58,8 @@ from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.signals import InputFamily
 from kkl_bench.registry import regimes
+from kkl_bench.support.devices import draw_integers, draw_normal, to_numpy, training_on
+from kkl_bench.training import FORCED_TRAINING
 
 TOOLKIT_VERSION = 6
 """Bump when a change to this module changes what a given configuration trains."""
@@ -145,46 +146,6 @@ each, one thread, side by side): 1.36 us per sample at once, 0.43-0.55 in blocks
 4096-16384 (Duffing's 64-wide decoder); 3.5 against 1.4-1.6 (Lorenz's 128-wide one);
 the same numbers."""
 
-TRAIN_BOXES = ("auto", "covering", "protocol")
-
-COVERAGE_MARGIN = 0.1
-"""``"auto"`` adds the covering box when forced training states exceed the range of
-unforced ones by more than this fraction of that range in some state."""
-
-
-def _state_range(context: FitContext, inputs: InputFamily, n: int, stream: str) -> Box:
-    """Per-state minimum and maximum ``(n_x,)`` over ``n`` training trajectories."""
-    x = context.training.simulate(inputs, n, stream=stream).x
-    states = x.reshape(-1, x.shape[-1])
-    return states.min(0), states.max(0)
-
-
-def training_boxes(context: FitContext, config: Phase1Config) -> list[Box]:
-    """Boxes the unforced Phase-1 trajectories start from (one sub-stream each).
-
-    The covering box is the per-state range of forced training trajectories
-    (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING` inputs, a training stream),
-    joined with the x0 box: forced Duffing reaches ``|x1|`` of about 7, far
-    outside ``[-1, 1]``, and maps trained on the x0 box alone are wrong
-    there. Where unforced orbits already span the forced states (Van der
-    Pol's limit cycle, the chaotic attractors), starting trajectories all
-    over that range only dilutes the data, and ``"auto"`` keeps the x0 box.
-    """
-    if config.train_box not in TRAIN_BOXES:
-        raise ValueError(f"unknown train_box {config.train_box!r}; valid: {', '.join(TRAIN_BOXES)}")
-    protocol_box = (context.x0_low, context.x0_high)
-    if config.train_box == "protocol":
-        return [protocol_box]
-    n = config.train_trajectories
-    forced_low, forced_high = _state_range(context, FORCED_TRAINING, n, "kkl/box")
-    if config.train_box == "auto":
-        low, high = _state_range(context, regimes.get("zero")(), n, "kkl/box/unforced")
-        margin = COVERAGE_MARGIN * (high - low)
-        if np.all(forced_low >= low - margin) and np.all(forced_high <= high + margin):
-            return [protocol_box]
-    covering = (np.minimum(forced_low, context.x0_low), np.maximum(forced_high, context.x0_high))
-    return [protocol_box, covering]
-
 
 def _networks(n_x: int, n_z: int, config: Phase1Config) -> tuple[NormalizedMLP, NormalizedMLP]:
     return NormalizedMLP(n_x, n_z, config.hidden, config.depth), NormalizedMLP(
@@ -194,49 +155,6 @@ def _networks(n_x: int, n_z: int, config: Phase1Config) -> tuple[NormalizedMLP, 
 
 def _tensor(array: np.ndarray) -> torch.Tensor:
     return torch.as_tensor(array, dtype=torch.float32)
-
-
-def train_decoder(
-    decoder: NormalizedMLP,
-    z: torch.Tensor,
-    x: torch.Tensor,
-    steps: int,
-    batch: int,
-    generator: torch.Generator,
-    description: str,
-    validation: tuple[torch.Tensor, np.ndarray] | None = None,
-    rule: PlateauRule | None = None,
-) -> Training:
-    """Fit ``decoder`` to pairs ``z: (n, n_z) -> x: (n, n_x)`` in normalized state units;
-    with ``validation = (z_val, x_val)`` (a tensor and an array), record its RMSE on them
-    (state units) as it goes and, with a ``rule``, end by the plateau rule at most
-    ``steps`` steps in; without, run ``steps`` steps."""
-
-    def loss(_):
-        rows = draw_integers(len(z), (batch,), generator)
-        return decoder.output_difference(decoder(z[rows]) - x[rows]).pow(2).sum(-1).mean()
-
-    error = None if validation is None else decoder_rmse(decoder, *validation)
-    return minimize(
-        loss,
-        decoder.parameters(),
-        steps,
-        batch,
-        description=description,
-        validation=error,
-        rule=rule,
-    )
-
-
-def decoder_rmse(decoder: NormalizedMLP, z: torch.Tensor, x: np.ndarray) -> Callable[[], float]:
-    """The RMSE of ``decoder(z)`` against ``x`` (all samples and states, state units), as
-    a function to call as training goes (``z: (n, n_z)`` tensor, ``x: (n, n_x)`` array)."""
-
-    def error() -> float:
-        with torch.no_grad():
-            return float(np.sqrt(np.mean((to_numpy(decoder(z)) - x) ** 2)))
-
-    return error
 
 
 def _select_rates(

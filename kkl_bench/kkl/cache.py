@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from filelock import FileLock
 
-from kkl_bench.cache import checksum_path, sha256_of, write_atomically
+from kkl_bench.support.cache import checksum_path, sha256_of, write_atomically
 
 
 def cache_key(description: dict[str, Any]) -> str:

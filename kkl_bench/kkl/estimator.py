@@ -5,8 +5,8 @@ from __future__ import annotations
 from abc import abstractmethod
 from typing import Any
 
-from kkl_bench.calibration import calibrated_context, calibration_report
 from kkl_bench.estimator import Estimator, FitContext
+from kkl_bench.fitting.calibration import calibrated_context, calibration_report
 
 NOTHING_SPENT = {"steps": 0, "samples": 0}
 LARGEST_LATENT = 1620
@@ -19,7 +19,7 @@ class KKLEstimator(Estimator):
 
     Subclasses implement :meth:`fit_model`. Given logged data of a true plant
     (the ``+logged`` rows of the ``mismatch`` track), the observer is trained
-    on the nominal model calibrated on them (:mod:`kkl_bench.calibration`): its
+    on the nominal model calibrated on them (:mod:`kkl_bench.fitting.calibration`): its
     training data are simulated by the calibrated model, as an engineer who
     calibrated first would train it. :meth:`fit_report` records the latent
     rates and how they were chosen, the maps' quality on held-out states, the

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from kkl_bench import flops
 from kkl_bench.kkl.networks import NormalizedMLP
+from kkl_bench.support import flops
 
 
 def _sigmoid(h: np.ndarray) -> np.ndarray:

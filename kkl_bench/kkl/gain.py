@@ -16,9 +16,9 @@ import numpy as np
 
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel
-from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.protocol.metrics import steady_state_start
 from kkl_bench.protocol.signals import InputFamily
+from kkl_bench.training import FORCED_TRAINING
 
 GAINS = (0.0, 0.25, 0.5, 0.75, 1.0)
 

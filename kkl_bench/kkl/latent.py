@@ -18,8 +18,8 @@ from collections.abc import Callable
 import numpy as np
 from scipy.linalg import expm
 
-from kkl_bench import flops
 from kkl_bench.measurement import held
+from kkl_bench.support import flops
 
 
 def spread_eigenvalues(n_z: int, slowest: float, fastest: float) -> np.ndarray:
@@ -98,7 +98,7 @@ class LatentObserver:
         drive = y[:, :-1] @ self.gamma0.T + np.diff(y, axis=1) @ self.gamma1.T
         batch, steps, n_y = y.shape
         flops.add(2 * flops.products(batch * (steps - 1), n_y, self.n_z))
-        if self._diagonal:  # elementwise: not counted (kkl_bench.flops)
+        if self._diagonal:  # elementwise: not counted (kkl_bench.support.flops)
             phi, gain = np.diag(self.phi), np.diag(self.injection_gain)
 
             def apply(matrix: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -34,11 +34,11 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from kkl_bench import flops, status
-from kkl_bench.convergence import converged
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.plateau import PLATEAU, Plateau, PlateauRule
-from kkl_bench.results import provenance
+from kkl_bench.support import flops, status
+from kkl_bench.support.convergence import converged
+from kkl_bench.support.provenance import provenance
 
 RESUME_KIND = "kkl-resume"
 CHECKPOINT_EVERY = 500
@@ -51,12 +51,12 @@ class Spent:
 
     A *sample* is one example a loss evaluates: a (state, latent) pair, a
     PDE collocation point or an (input window, state) pair. ``device`` is where the
-    training ran (:mod:`kkl_bench.devices`). ``seconds`` is the
+    training ran (:mod:`kkl_bench.support.devices`). ``seconds`` is the
     wall time of the :func:`counting` block (data simulation included); a block
     inside a :func:`resumable` one that resumed from a checkpoint also counts the
     time the interrupted run had spent up to that checkpoint, so it reads as the
     wall time of the uninterrupted training. ``git_commit`` is the commit of the code that
-    trained (``-dirty`` from a modified tree; :func:`kkl_bench.results.provenance`): it is
+    trained (``-dirty`` from a modified tree; :func:`kkl_bench.support.provenance.provenance`): it is
     stored with the model, so a cell scored from a cached model records which code trained
     it beside the commit that scored it.
     """
@@ -103,7 +103,7 @@ class Training:
         """The training log a fit report records: the steps run, the mean loss of the
         ``last`` steps and, with a validation curve, the curve, the plateau rule's record
         and whether the training converged (stopped by the plateau; without a rule,
-        :func:`~kkl_bench.convergence.converged` on the curve)."""
+        :func:`~kkl_bench.support.convergence.converged` on the curve)."""
         log: dict[str, Any] = {
             "steps": len(self.losses),
             "final_loss": float(sum(self.losses[-last:]) / len(self.losses[-last:])),
@@ -258,7 +258,7 @@ def _adam_step(loss_fn, step, parameters, optimizer, schedule=None) -> float:
 @dataclass
 class Probe:
     """Measures what each :func:`minimize` call inside :func:`probing` achieves instead of
-    training: one step counted (:func:`kkl_bench.flops.counting`: the matrix products of
+    training: one step counted (:func:`kkl_bench.support.flops.counting`: the matrix products of
     the loss and its gradient), then one untimed, then ``steps`` steps timed, each the
     same work as a training step. ``records`` gets one entry per call: ``training`` (its
     description), ``samples_per_step``, ``fit_steps`` (the steps the training would run),

@@ -1,6 +1,6 @@
 """What the input-aware KKL plugins share in Phase 2: forced data, windows, caching.
 
-Phase-2 data are forced trajectories (:data:`~kkl_bench.kkl.inputs.FORCED_TRAINING`
+Phase-2 data are forced trajectories (:data:`~kkl_bench.training.FORCED_TRAINING`
 inputs, training streams only) run through the Phase-1 latent observer,
 which ignores the input: ``z_k`` is what the observer holds at test time.
 Samples are drawn from the protocol's scored window.
@@ -15,18 +15,18 @@ from typing import Any
 import torch
 from torch import nn
 
-from kkl_bench.devices import draw_integers, training_on
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.autonomous import AutonomousModel, fit_phase1
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.data import ObserverData, observer_data, validation_count
-from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.networks import seeded
 from kkl_bench.kkl.optimize import counting, resumable
 from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.kkl.windows import sliding_windows
 from kkl_bench.protocol.metrics import steady_state_start
+from kkl_bench.support.devices import draw_integers, training_on
+from kkl_bench.training import FORCED_TRAINING
 
 
 @dataclass(frozen=True)
@@ -175,7 +175,7 @@ def load_or_train(
 ) -> dict[str, Any]:
     """Load ``modules``' state from the cache, or call ``train(generator)`` and store it.
 
-    ``train`` runs on ``context.device`` (:func:`kkl_bench.devices.training_on`), with
+    ``train`` runs on ``context.device`` (:func:`kkl_bench.support.devices.training_on`), with
     ``modules`` and the other networks it ``uses`` moved there; the state is stored from
     the CPU.
 

@@ -11,7 +11,7 @@ stops there; one whose validation error is not finite stops at once. Either way
 the parameters of the best measurement are restored at the end, so the model
 kept is the training's best on validation, and the fit report says at which
 step it was measured (:attr:`Plateau.best_step`) and why the training stopped
-(:data:`~kkl_bench.convergence.STOPPED_BY`).
+(:data:`~kkl_bench.support.convergence.STOPPED_BY`).
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from typing import Any
 
 import torch
 
-from kkl_bench.convergence import STOPPED_BY
+from kkl_bench.support.convergence import STOPPED_BY
 
 PLATEAU, CAP, DIVERGED = STOPPED_BY
-"""Why a training stopped (the verdicts they read as: :data:`~kkl_bench.convergence.STOPPED_BY`)."""
+"""Why a training stopped (the verdicts they read as: :data:`~kkl_bench.support.convergence.STOPPED_BY`)."""
 
 
 @dataclass(frozen=True)

@@ -29,11 +29,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from kkl_bench.devices import to_numpy
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl.config import from_budget
 from kkl_bench.kkl.gain import simulate_families
-from kkl_bench.kkl.inputs import FORCED_TRAINING
 from kkl_bench.kkl.optimize import Training, minimize
 from kkl_bench.kkl.phase2 import load_or_train
 from kkl_bench.kkl.plateau import PlateauRule
@@ -42,6 +40,8 @@ from kkl_bench.protocol import PROTOCOL_ID
 from kkl_bench.protocol.metrics import rmse
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import regimes
+from kkl_bench.support.devices import to_numpy
+from kkl_bench.training import FORCED_TRAINING
 
 
 @dataclass(frozen=True)

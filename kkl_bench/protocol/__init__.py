@@ -3,6 +3,8 @@
 Everything here is fixed by the protocol document (``docs/protocol.md``) and
 depends on numpy only. The constants below are the protocol's time grid and
 noise levels.
+
+Layer: the bottom; it imports nothing else of kkl_bench.
 """
 
 PROTOCOL_VERSION = 1

@@ -1,9 +1,9 @@
 """Straight-line scalar source traced from the compiled model: what the unrolled kernels run.
 
-The compiled engines' generic kernels (``estimators/kalman_kernels.py``, over the model
+The compiled engines' generic kernels (``estimators/filters/kalman_kernels.py``, over the model
 of :mod:`kkl_bench.protocol.compiled`) sweep each operation over the batch, with the
 sizes known only at run time: a loop per operation and a call per model function,
-whatever the batch. An unrolled kernel (``estimators/kalman_unrolled.py``) instead runs
+whatever the batch. An unrolled kernel (``estimators/filters/kalman_unrolled.py``) instead runs
 one trajectory's whole step as straight-line scalar code. Its source is written by
 tracing: an algorithm written over :class:`Scalar` values, and the
 model's own numba functions run in Python (``py_func``) on object arrays of them, record

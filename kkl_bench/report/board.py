@@ -7,14 +7,20 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from kkl_bench import families, figures, findings, variants
-from kkl_bench.comparisons import comparison_cells, limit_table, one_line_answer
-from kkl_bench.cost import COST_FILE
-from kkl_bench.leaderboard import cost_table, grid_tables, measured_cost_table, paper_comparison
+from kkl_bench import families, variants
+from kkl_bench.analysis import figures, findings
+from kkl_bench.analysis.comparisons import comparison_cells, limit_table, one_line_answer
+from kkl_bench.analysis.cost import COST_FILE
+from kkl_bench.analysis.document import HTML, Figure, Section, Table, Text
+from kkl_bench.analysis.leaderboard import (
+    cost_table,
+    grid_tables,
+    measured_cost_table,
+    paper_comparison,
+)
+from kkl_bench.analysis.summary import PAPER_PREFIX, relative_summary, summary_table
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators
-from kkl_bench.report.model import HTML, Figure, Section, Table, Text
-from kkl_bench.summary import PAPER_PREFIX, relative_summary, summary_table
 
 TAB = PAPER_TRACK
 """The page's panel of the paper track."""
@@ -25,7 +31,7 @@ class TrackTables:
     """What the folder shows of the tracks other than the paper's.
 
     summaries: track name -> its :func:`summary_table`; relative:
-    :func:`~kkl_bench.summary.track_summary` (each track against the paper track);
+    :func:`~kkl_bench.analysis.summary.track_summary` (each track against the paper track);
     conditions: the same by condition; cells: track name -> its cells.
     """
 
@@ -60,11 +66,11 @@ class Board:
     (no findings, no ratios to the paper); margin: the marks' practical-equivalence margin;
     scaling_study: ``scaling.md`` stands beside the board; costs: the paper track's rows of
     its ``cost.csv``, if any; verifications: the rows of its ``verification.csv``
-    (:mod:`kkl_bench.verification`), if any; scaling_panel: the scaling study's panel
+    (:mod:`kkl_bench.run.verification`), if any; scaling_panel: the scaling study's panel
     (:func:`kkl_bench.report.scaling.study_panel`), if the folder holds the study;
     every_cell: the cells of every track (what the Reproduce section reads); regeneration:
     the summary of the results folder's regeneration ledger
-    (:func:`kkl_bench.regenerate.ledger_summary`), if one wrote it.
+    (:func:`kkl_bench.run.regenerate.ledger_summary`), if one wrote it.
     """
 
     summary: pd.DataFrame
@@ -158,7 +164,7 @@ never a win, however many trajectories agree on it). Otherwise the lowest entry
 and every entry not distinguishable from it in that way are in *italics*
 (tied). Entries with a diverged trajectory are never marked. The paper's rows
 (`paper:`) are its published numbers on its own test sets, shown for
-reference and never marked. `kkl_bench/significance.py` has
+reference and never marked. `kkl_bench/analysis/significance.py` has
 the exact procedure."""
     page = Text(
         "On the page, each track has a panel: its answer in one line and, where a limit was "
@@ -264,7 +270,7 @@ interval from the paired hierarchical bootstrap of the marks. A cell
 *contradicts* it when it lies above 1, and is *undecided* otherwise.
 `static_hyperkkl` is the paper's observer (unguarded); the zero input is left
 out of the hypernetwork claims, where a hypernetwork equals the autonomous
-observer by construction. `kkl_bench/findings.py` states the claims."""
+observer by construction. `kkl_bench/analysis/findings.py` states the claims."""
 
 
 def finding_sections(board: Board) -> list[Section]:

@@ -1,4 +1,4 @@
-"""Sections (:mod:`kkl_bench.report.model`) as one self-contained page (no server, no network).
+"""Sections (:mod:`kkl_bench.analysis.document`) as one self-contained page (no server, no network).
 
 Sections with a ``tab`` go into one panel per tab, chosen by buttons; the others
 stand above and below the panels. Tables with shades colour each cell by its
@@ -16,7 +16,7 @@ import re
 
 import pandas as pd
 
-from kkl_bench.report.model import HTML, Code, Figure, Section, Table, Text, shown
+from kkl_bench.analysis.document import HTML, Code, Figure, Section, Table, Text, shown
 
 
 def inline(markdown: str) -> str:

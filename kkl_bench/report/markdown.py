@@ -1,11 +1,11 @@
-"""Sections (:mod:`kkl_bench.report.model`) as GitHub Markdown."""
+"""Sections (:mod:`kkl_bench.analysis.document`) as GitHub Markdown."""
 
 from __future__ import annotations
 
 import pandas as pd
 from tabulate import tabulate
 
-from kkl_bench.report.model import MARKDOWN, Code, Figure, Section, Table, Text, shown
+from kkl_bench.analysis.document import MARKDOWN, Code, Figure, Section, Table, Text, shown
 
 MARKUP = {"best": ("**", "**"), "tied": ("*", "*")}
 

@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import pandas as pd
 
-from kkl_bench.convergence import trained
+from kkl_bench.analysis.document import HTML, Section, Table, Text
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report.board import Board
-from kkl_bench.report.model import HTML, Section, Table, Text
-from kkl_bench.results import cell_path
-from kkl_bench.verification import (
+from kkl_bench.run.results import cell_path
+from kkl_bench.run.verification import (
     DRIFTED,
     IDENTICAL,
     VERDICT_COLUMNS,
@@ -18,6 +17,7 @@ from kkl_bench.verification import (
     latest_run,
     verification_sentence,
 )
+from kkl_bench.support.convergence import trained
 
 NOT_RECORDED = "not recorded"
 """What the Reproduce table says of cells written before runs recorded their command line."""
@@ -31,7 +31,7 @@ RUNS_TEXT = (
     "its models' training commit)."
 )
 DIRTY = "-dirty"
-"""The suffix of a commit whose checkout had uncommitted changes (:func:`kkl_bench.results.provenance`)."""
+"""The suffix of a commit whose checkout had uncommitted changes (:func:`kkl_bench.support.provenance.provenance`)."""
 
 
 def training_commits(fit_report: dict | None) -> set[str]:
@@ -193,7 +193,7 @@ def _versions(results: pd.DataFrame) -> dict[str, list[str]]:
 
 def regeneration_sentence(summary: dict | None) -> str:
     """What the Reproduce section says of the ``kkl-bench regenerate`` runs that wrote the
-    results (:func:`kkl_bench.regenerate.ledger_summary` of their ledger)."""
+    results (:func:`kkl_bench.run.regenerate.ledger_summary` of their ledger)."""
     if summary is None:
         return (
             "These results were not written by `kkl-bench regenerate` (their folder holds no "

@@ -31,24 +31,24 @@ from typing import Any
 import pandas as pd
 from tqdm import tqdm
 
-from kkl_bench import figures
-from kkl_bench.cache import imported_code_digest
-from kkl_bench.cost import COST_FILE, read_costs, with_measured_costs
-from kkl_bench.leaderboard import render
-from kkl_bench.ledger import ledger_summary, read_ledger
+from kkl_bench.analysis import figures
+from kkl_bench.analysis.cost import COST_FILE, read_costs, with_measured_costs
+from kkl_bench.analysis.document import Section
+from kkl_bench.analysis.significance import MARGIN
+from kkl_bench.analysis.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, summary_table
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report import html, markdown
 from kkl_bench.report.board import Board, TrackTables, introduction, paper_sections, reading_guide
-from kkl_bench.report.model import Section
 from kkl_bench.report.provenance import failed_seeds, provenance_sections, runs_frame
 from kkl_bench.report.scaling import study_panel
+from kkl_bench.report.text import render
 from kkl_bench.report.tracks import settles, track_sections
-from kkl_bench.results import kept_estimates
-from kkl_bench.significance import MARGIN
-from kkl_bench.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, summary_table
-from kkl_bench.task import ProfileError, get_profile
-from kkl_bench.tracks import find_track
-from kkl_bench.verification import VERIFICATION_FILE, read_verifications
+from kkl_bench.run.ledger import ledger_summary, read_ledger
+from kkl_bench.run.results import kept_estimates
+from kkl_bench.run.verification import VERIFICATION_FILE, read_verifications
+from kkl_bench.suite.task import ProfileError, get_profile
+from kkl_bench.suite.tracks import find_track
+from kkl_bench.support.cache import imported_code_digest
 
 MANIFEST = "publication.json"
 """The file by which ``publish`` owns its folder: profile, results folder and files written."""
@@ -92,7 +92,7 @@ def publish(
     force: bool = False,
 ) -> list[Path]:
     """Write the leaderboard folder of ``results`` (one profile's cells, of any tracks, from
-    :func:`~kkl_bench.results.load_results` of ``results_dir``) into ``out``.
+    :func:`~kkl_bench.run.results.load_results` of ``results_dir``) into ``out``.
 
     ``out`` is owned through its manifest (:data:`MANIFEST`): the files of the previous
     publication that this one does not write are removed, and a folder holding a board of

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from kkl_bench import families, figures
-from kkl_bench.report import markdown
-from kkl_bench.report.model import HTML, Figure, Section, Table, Text
-from kkl_bench.scaling import (
+from kkl_bench import families
+from kkl_bench.analysis import figures
+from kkl_bench.analysis.document import HTML, Figure, Section, Table, Text
+from kkl_bench.analysis.scaling import (
     BATCHES,
     ENGINE_ONLINE,
     GROWTHS,
@@ -34,6 +34,7 @@ from kkl_bench.scaling import (
     system_name,
     trained_fit_times,
 )
+from kkl_bench.report import markdown
 
 
 def study_section(frame: pd.DataFrame, profile: str) -> Section:
@@ -200,7 +201,7 @@ def _stored_reference(reference: pd.DataFrame, n: int, run: int) -> str:
 
 
 def _models(frame: pd.DataFrame) -> str:
-    """Which timing runs timed untrained models (:data:`~kkl_bench.scaling.MODELS`), read
+    """Which timing runs timed untrained models (:data:`~kkl_bench.analysis.scaling.MODELS`), read
     from the timings; nothing for a study of trained models only."""
     if "models" not in frame:
         return ""
@@ -294,7 +295,7 @@ def _exponent(value: float) -> str:
 
 def _timed_sizes(frame: pd.DataFrame, estimator: str, batch: int, against: str) -> list[int]:
     """The sizes at which ``estimator``'s online cost at ``batch`` was measured, and
-    ``against``'s in the same run (:func:`~kkl_bench.scaling.cost_against`), ascending."""
+    ``against``'s in the same run (:func:`~kkl_bench.analysis.scaling.cost_against`), ascending."""
     column = ONLINE[BATCHES.index(batch)]
     timed = frame[column].notna() & cost_against(frame, against, batch).notna()
     return sorted(int(n) for n in frame.loc[timed & (frame["estimator"] == estimator), "n"])
@@ -358,7 +359,7 @@ def write_study(
 ) -> list[Path]:
     """Write ``scaling.md``, ``scaling.csv`` and ``figures/scaling.{png,svg}`` into ``out``,
     and ``figures/scaling-curves.{png,svg}`` if ``curves``
-    (:func:`~kkl_bench.scaling.curve_frame`) holds any."""
+    (:func:`~kkl_bench.analysis.scaling.curve_frame`) holds any."""
     frame = scaling_frame(cells, timings)
     out.mkdir(parents=True, exist_ok=True)
     written_by = Section(

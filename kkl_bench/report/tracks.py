@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from kkl_bench.comparisons import (
+from kkl_bench.analysis.comparisons import (
     calibrated_versus_learned,
     comparison_cells,
     headroom_sentence,
@@ -13,14 +13,14 @@ from kkl_bench.comparisons import (
     limit_table,
     one_line_answer,
 )
-from kkl_bench.leaderboard import grid_tables, track_summary_table
-from kkl_bench.plants import true_plant
+from kkl_bench.analysis.document import Figure, Section, Table, Text
+from kkl_bench.analysis.leaderboard import grid_tables, track_summary_table
+from kkl_bench.analysis.scaling import TRACK as SCALING_TRACK
+from kkl_bench.analysis.summary import SYSTEM_TITLES, condition, unsupported_reasons
 from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
 from kkl_bench.report.board import Board, long_table
-from kkl_bench.report.model import Figure, Section, Table, Text
-from kkl_bench.scaling import TRACK as SCALING_TRACK
-from kkl_bench.summary import SYSTEM_TITLES, condition, unsupported_reasons
-from kkl_bench.tracks import find_track
+from kkl_bench.suite.plants import true_plant
+from kkl_bench.suite.tracks import find_track
 
 SUMMARY_TAB = "tracks compared"
 """The page's panel of the cross-track summary."""
@@ -78,7 +78,7 @@ def grouped_conditions(conditions: pd.DataFrame, name: str) -> pd.DataFrame | No
 
 def calibration_table(cells: pd.DataFrame, track: str) -> Table | None:
     """Per system and true plant of ``track``: each parameter the ``+logged`` model-based
-    rows fitted (:mod:`kkl_bench.calibration`, from their fit reports) beside the true
+    rows fitted (:mod:`kkl_bench.fitting.calibration`, from their fit reports) beside the true
     plant's, with the relative error; None if no cell recorded a calibration."""
     declared = find_track(track)
     rows, seen = [], set()
@@ -141,7 +141,7 @@ AGAINST_MODEL_BASED_TEXT = (
 def versus_blocks(
     frame: pd.DataFrame, text: str, sides: tuple[str, str], headers: tuple[str, str], id: str
 ) -> list:
-    """A :func:`~kkl_bench.comparisons.best_against_best` frame as a table with a tally per
+    """A :func:`~kkl_bench.analysis.comparisons.best_against_best` frame as a table with a tally per
     condition: ``sides`` name its two sides in verdicts (``"calibrated"``, ``"learned"``),
     ``headers`` its two RMSE columns."""
     if frame.empty:

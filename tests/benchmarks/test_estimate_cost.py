@@ -18,12 +18,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from kkl_bench import cost, variants
-from kkl_bench.executors import thread_limit
-from kkl_bench.findings import PAPER_SYSTEMS
+from kkl_bench import variants
+from kkl_bench.analysis import cost
+from kkl_bench.analysis.findings import PAPER_SYSTEMS
 from kkl_bench.registry import estimators, systems
-from kkl_bench.spec import RunSpec, make_fit_context
-from kkl_bench.task import Task, get_profile, make_test_set
+from kkl_bench.run.spec import RunSpec, make_fit_context
+from kkl_bench.suite.task import Task, get_profile, make_test_set
+from kkl_bench.support.executors import thread_limit
 
 SYSTEMS, REGIME = PAPER_SYSTEMS, "sinusoid"
 SMALL_FIT = {

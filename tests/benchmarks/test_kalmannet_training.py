@@ -10,11 +10,11 @@ Each records ``ms_per_window`` in its ``extra_info``; protocol 6.5 quotes the ra
 
 import pytest
 import torch
-from kkl_bench.estimators.kalmannet import KalmanNetFilter
+from kkl_bench.estimators.learned.kalmannet import KalmanNetFilter
 
-from kkl_bench.devices import compile_failure
-from kkl_bench.executors import thread_limit
 from kkl_bench.registry import systems
+from kkl_bench.support.devices import compile_failure
+from kkl_bench.support.executors import thread_limit
 
 BATCH, WINDOW, HIDDEN = 32, 100, 64
 

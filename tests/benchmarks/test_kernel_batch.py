@@ -2,8 +2,8 @@
 
 Run with ``python -m pytest tests/benchmarks/test_kernel_batch.py --benchmark-only``.
 
-The compiled EKF's two kernels, the generic one (``estimators/kalman_kernels.py``) and the
-unrolled one (``estimators/kalman_unrolled.py``), side by side on 1000 samples of Duffing
+The compiled EKF's two kernels, the generic one (``estimators/filters/kalman_kernels.py``) and the
+unrolled one (``estimators/filters/kalman_unrolled.py``), side by side on 1000 samples of Duffing
 and of Lorenz, at batches of 1 to 160 trajectories, one thread. Each records
 ``ns_per_trajectory_step`` in its ``extra_info``; a line through the per-step costs
 ``batch * ns_per_trajectory_step`` gives the fixed cost of a step (its loops' set-up over
@@ -13,10 +13,10 @@ both beside the row's floor).
 
 import numpy as np
 import pytest
-from kkl_bench.estimators import kalman_kernels, kalman_unrolled
+from kkl_bench.estimators.filters import kalman_kernels, kalman_unrolled
 
-from kkl_bench.executors import thread_limit
 from kkl_bench.registry import systems
+from kkl_bench.support.executors import thread_limit
 
 STEPS = 1000
 BATCHES = (1, 5, 10, 20, 40, 80, 160)

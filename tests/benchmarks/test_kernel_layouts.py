@@ -14,9 +14,9 @@ import numba
 import numpy as np
 import pytest
 
-from kkl_bench.executors import thread_limit
 from kkl_bench.protocol.compiled import rk4_step
 from kkl_bench.registry import systems
+from kkl_bench.support.executors import thread_limit
 
 POINTS = 40000
 DT = 0.05

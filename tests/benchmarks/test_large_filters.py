@@ -3,9 +3,9 @@ large-system ones.
 
 Run with ``python -m pytest tests/benchmarks/test_large_filters.py --benchmark-only``.
 
-The generic kernels (``estimators/kalman_kernels.py``, the batch on the last axis of every
+The generic kernels (``estimators/filters/kalman_kernels.py``, the batch on the last axis of every
 matrix, dense loops) and the one-trajectory-at-a-time kernels with BLAS products
-(``estimators/kalman_large.py``: the EKF's sparse factors by their nonzeros, the UKF's sigma
+(``estimators/filters/kalman_large.py``: the EKF's sparse factors by their nonzeros, the UKF's sigma
 points as the columns the model sweeps), side by side on 100 samples at batches 1 and 20,
 one thread. The generic kernels run to n = 40 (the EKF) and 80 (the UKF) only: beyond, a
 call takes minutes. Each benchmark records ``us_per_trajectory_step`` and, for the EKF's
@@ -16,10 +16,10 @@ large kernel, from the ``ekf`` row's own count, ``flops_per_trajectory_step`` in
 import numpy as np
 import pytest
 from filterpy.kalman import MerweScaledSigmaPoints
-from kkl_bench.estimators import kalman_kernels, kalman_large
+from kkl_bench.estimators.filters import kalman_kernels, kalman_large
 from kkl_bench.systems.lorenz96 import SIZES, lorenz96
 
-from kkl_bench.executors import thread_limit
+from kkl_bench.support.executors import thread_limit
 
 STEPS = 100
 KERNELS = {

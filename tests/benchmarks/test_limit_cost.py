@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from kkl_bench import variants
-from kkl_bench.executors import thread_limit
-from kkl_bench.spec import RunSpec, fit_context_for_row
-from kkl_bench.task import Task, get_profile, make_test_set
+from kkl_bench.run.spec import RunSpec, fit_context_for_row
+from kkl_bench.suite.task import Task, get_profile, make_test_set
+from kkl_bench.support.executors import thread_limit
 
 TASK = Task("rossler", "outliers-square", track="hard")
 TRAJECTORIES = 2

@@ -13,10 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from kkl_bench import scaling, variants
+from kkl_bench import variants
+from kkl_bench.analysis import scaling
 from kkl_bench.registry import estimators
-from kkl_bench.spec import RunSpec, make_fit_context
-from kkl_bench.task import Task, get_profile, make_test_set
+from kkl_bench.run.spec import RunSpec, make_fit_context
+from kkl_bench.suite.task import Task, get_profile, make_test_set
 from tests.benchmarks.test_estimate_cost import SMALL_FIT, one_thread  # noqa: F401 (fixture)
 
 NAMES = estimators.names()

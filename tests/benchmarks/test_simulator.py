@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from kkl_bench.registry import systems
-from kkl_bench.task import Task, build_test_set
+from kkl_bench.suite.task import Task, build_test_set
 
 ALL_CELLS = [
     Task(s, r)

@@ -1,7 +1,7 @@
 """Is an untrained model as costly online as the trained one? (``kkl-bench scaling --untrained``)
 
 The scaling study may time models built at the profile's sizes with their trainings cut
-short (:func:`kkl_bench.scaling.fit_untrained`) instead of the trained models of a cache
+short (:func:`kkl_bench.analysis.scaling_timing.fit_untrained`) instead of the trained models of a cache
 (protocol section 8). This benchmark times both side by side, round-robin on one thread,
 for the learned rows whose trained models the cache ``$KKL_BENCH_TRAINED_CACHE`` holds at
 the sizes of ``ROWS``, filled beforehand by
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import pytest
 
-from kkl_bench import scaling
-from kkl_bench.spec import RunSpec
-from kkl_bench.task import get_profile
+from kkl_bench.analysis import scaling, scaling_timing
+from kkl_bench.run.spec import RunSpec
+from kkl_bench.suite.task import get_profile
 from tests.benchmarks.test_estimate_cost import one_thread  # noqa: F401 (fixture)
 
 ROWS = (("autonomous_kkl", 10), ("injection_kkl", 10))
@@ -48,17 +48,17 @@ def test_untrained_models_cost_what_trained_ones_cost(benchmark):
     with tempfile.TemporaryDirectory() as untrained:
         fitted = {}
         for name, n in ROWS:
-            (trained,) = scaling.fit_from_cache(spec, name, n, 0).values()
+            (trained,) = scaling_timing.fit_from_cache(spec, name, n, 0).values()
             fitted[name, n] = {
                 "trained": {"torch": trained},
-                "untrained": scaling.fit_untrained(
+                "untrained": scaling_timing.fit_untrained(
                     replace(spec, cache_dir=Path(untrained)), name, n, 0, trained.fit_report()
                 ),
             }
         models = {((name, kind), n): engines for (name, n), kinds in fitted.items()
                   for kind, engines in kinds.items()}  # fmt: skip
         timings = benchmark.pedantic(
-            lambda: scaling.time_estimators(spec, models), rounds=1, iterations=1
+            lambda: scaling_timing.time_estimators(spec, models), rounds=1, iterations=1
         )
     timings["row"] = timings["estimator"].str[0]  # (name, kind)
     timings["kind"] = timings["estimator"].str[1]

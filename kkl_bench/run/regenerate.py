@@ -1,0 +1,249 @@
+"""Regenerate published cells with one resumable command (``kkl-bench regenerate``).
+
+The plan is read from a results folder (the published ``leaderboard/results``): every
+cell of one profile, optionally narrowed to some rows, tracks and systems, is computed
+again into another folder by the harness's own jobs (:class:`~kkl_bench.run.harness.Job`:
+one fit, the cells it scores), with each row run as a ``kkl-bench run`` of that row
+would run it. Nothing in the source folder is written. A job's cost is estimated from
+the source cells' own records (the training seconds stored with their models, the
+Phase-1 models the KKL rows share counted once, and their scoring time), so the plan
+states its core-hours before it starts, and the progress bar counts estimated seconds
+of work, not cells.
+
+The run is resumable like ``kkl-bench run``: cells already in the target folder are
+skipped, and a killed training continues from its checkpoint in the model cache. Each
+job's measured processor time (one thread per job: its core-seconds) is added to the
+target folder's
+:data:`~kkl_bench.run.ledger.LEDGER_FILE` when it ends, so the core-hours of a regeneration spread over
+several invocations, or machines, add up; the board's Reproduce section reads them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from kkl_bench import variants
+from kkl_bench.protocol import DT
+from kkl_bench.run import harness
+from kkl_bench.run.harness import Job, JobOutcome, RunSpec
+from kkl_bench.run.ledger import read_ledger, record_job
+from kkl_bench.suite.task import Profile
+from kkl_bench.suite.tracks import get_track
+from kkl_bench.support.executors import execute
+
+
+@dataclass(frozen=True)
+class PlannedJob:
+    """One harness job of a regeneration, with the spec of its row's run and its
+    estimated wall time (s, one thread)."""
+
+    spec: RunSpec
+    job: Job
+    estimate_s: float
+
+    @property
+    def key(self) -> str:
+        """The job's name in the ledger: row, system, seed and its tasks' ids."""
+        tasks = ",".join(task.id for task in self.job.tasks)
+        return f"{self.job.estimator} {self.job.system} seed{self.job.seed} [{tasks}]"
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The jobs still to run, with how many of the selected source cells they make and
+    how many the target folder already holds."""
+
+    jobs: list[PlannedJob]
+    cells: int
+    done: int
+
+    @property
+    def estimate_s(self) -> float:
+        return sum(planned.estimate_s for planned in self.jobs)
+
+    def describe(self) -> str:
+        """The plan in a few lines: rows, fits, cells, estimated core-hours."""
+        rows = pd.Series([planned.job.estimator for planned in self.jobs]).value_counts()
+        lines = [
+            f"{len(self.jobs)} fits of {rows.size} rows to make {self.cells - self.done} "
+            f"cells ({self.done} of {self.cells} already done); estimated "
+            f"{self.estimate_s / 3600:.1f} core-hours (from the source cells' recorded "
+            "training and scoring times, one thread a fit)"
+        ]
+        by_row = {
+            row: sum(p.estimate_s for p in self.jobs if p.job.estimator == row)
+            for row in rows.index
+        }
+        lines += [
+            f"  {row}: {rows[row]} fits, {seconds / 3600:.2f} core-hours"
+            for row, seconds in sorted(by_row.items(), key=lambda item: -item[1])
+        ]
+        return "\n".join(lines)
+
+
+def plan(
+    source: pd.DataFrame,
+    profile: Profile,
+    into: Path,
+    cache_dir: Path,
+    command: str | None = None,
+) -> Plan:
+    """The regeneration of the cells of ``source`` (:func:`~kkl_bench.run.results.load_results`
+    of the source folder, narrowed as wanted, of ``profile``) into the folder ``into``.
+
+    Each row is planned as a run of that row alone over the systems, tracks and seeds of
+    its source cells (``<name>+logged`` and ``<name>+truth`` rows as runs of theirs), and
+    only the tasks of its source cells are kept in its jobs. Jobs come in the order the
+    harness plans them, rows in the source's order, so the first KKL row trains the
+    Phase-1 models the others load.
+    """
+    source = source[source["profile"] == profile.name]
+    wanted = set(zip(source["estimator"], source["task"], source["seed"], strict=True))
+    known = _CostRecords(source)
+    jobs, done = [], 0
+    for row, cells in source.groupby("estimator", sort=False):
+        derived = bool(variants.split_row(row)[1])
+        spec = RunSpec(
+            estimators=(row,),
+            systems=tuple(dict.fromkeys(cells["system"])),
+            regimes=None,
+            profile=profile,
+            seeds=tuple(sorted(set(cells["seed"]))),
+            results_dir=into,
+            cache_dir=cache_dir,
+            tracks=tuple(dict.fromkeys(cells["track"])),
+            command=command,
+            own_rows_only=not derived,
+        )
+        todo, cached = harness.plan(spec)
+        done += sum((c.estimator, c.task, c.seed) in wanted for c in cached)
+        for job in todo:
+            tasks = tuple(t for t in job.tasks if (job.estimator, t.id, job.seed) in wanted)
+            if tasks:
+                job = Job(job.estimator, job.system, tasks, job.seed)
+                jobs.append(PlannedJob(spec, job, known.seconds(job)))
+    return Plan(jobs, len(wanted), done)
+
+
+class _CostRecords:
+    """What the source cells recorded of their cost: per job, the seconds its models
+    trained (:func:`phase_seconds`) and the seconds its cells were scored in."""
+
+    def __init__(self, source: pd.DataFrame) -> None:
+        self.cells = {
+            (row.estimator, row.task, row.seed): row for row in source.itertuples(index=False)
+        }
+        self.trained: set[tuple] = set()
+
+    def seconds(self, job: Job) -> float:
+        """The estimated wall time of ``job``. A model several rows share (a Phase-1 model,
+        the nominal network a ``+logged`` row fine-tunes) reads the same training seconds
+        in each: it is counted by the first job that needs it only."""
+        cells = [self.cells[(job.estimator, task.id, job.seed)] for task in job.tasks]
+        fit = 0.0
+        for phase, seconds in phase_seconds(cells[0]).items():
+            shared = (job.system, job.seed, phase, seconds)
+            if shared not in self.trained:
+                self.trained.add(shared)
+                fit += seconds
+        scoring = sum(
+            _scoring_seconds(cell, task) for cell, task in zip(cells, job.tasks, strict=True)
+        )
+        return fit + scoring
+
+
+def phase_seconds(cell) -> dict[str, float]:
+    """The wall time each phase of the fit behind ``cell`` trained for (``fit_report``'s
+    ``spent``, stored with the models); a fit that trained nothing, its fit time."""
+    report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
+    spent = report.get("spent") or {}
+    phases = {
+        phase: float(record.get("seconds") or 0.0)
+        for phase, record in spent.items()
+        if isinstance(record, dict)
+    }
+    if any(phases.values()):
+        return phases
+    fit = cell.fit_time_s
+    return {"fit": float(fit) if isinstance(fit, float) and math.isfinite(fit) else 0.0}
+
+
+def _scoring_seconds(cell, task) -> float:
+    """``cell``'s estimation time over its test set: its µs per trajectory-step times the
+    trajectories and samples of ``task``."""
+    per_step = cell.estimate_us_per_step
+    if not (isinstance(per_step, float) and math.isfinite(per_step)):
+        return 0.0
+    samples = round(task.definition.horizon / DT) + 1
+    return per_step * 1e-6 * cell.n_test * samples
+
+
+def _timed_job(spec: RunSpec, job: Job) -> tuple[JobOutcome, float, float]:
+    """:func:`~kkl_bench.run.harness.run_job` on one thread, with the processor time it took
+    (s: the core-seconds it used, whatever else shares the machine, waits for another
+    job's model or pauses) and its wall time (s)."""
+    start, start_cpu = time.perf_counter(), time.process_time()
+    outcome = harness.run_job(spec, job)  # on one thread (kkl_bench.support.executors)
+    return outcome, time.process_time() - start_cpu, time.perf_counter() - start
+
+
+def run(
+    planned: Plan,
+    into: Path,
+    progress: Callable[[PlannedJob, JobOutcome], None] | None = None,
+    jobs: int = 1,
+    executor: str = "loky",
+    scheduler: str | None = None,
+) -> dict[str, Any]:
+    """Run ``planned``'s jobs (``jobs`` at once, through
+    :func:`~kkl_bench.support.executors.execute`), adding each finished job's processor and wall
+    time to the ledger in ``into`` as it ends; ``progress(planned_job, outcome)`` after
+    each. Returns the ledger."""
+    by_job = {planned_job.job: planned_job for planned_job in planned.jobs}
+    arguments = [(p.spec, p.job) for p in planned.jobs]
+    for outcome, seconds, wall in execute(_timed_job, arguments, jobs, executor, scheduler):
+        planned_job = by_job[outcome.job]
+        failed = sum(cell.status == "error" for cell in outcome.scored)
+        record_job(
+            into,
+            planned_job.key,
+            {"seconds": seconds, "wall_seconds": wall},
+            planned_job.estimate_s,
+            len(outcome.scored),
+            failed,
+        )
+        if progress is not None:
+            progress(planned_job, outcome)
+    return read_ledger(into)
+
+
+def select(
+    source: pd.DataFrame,
+    rows: Iterable[str] | None = None,
+    tracks: Iterable[str] | None = None,
+    systems: Iterable[str] | None = None,
+) -> pd.DataFrame:
+    """The cells of ``source`` of the given rows, tracks and systems (None: all), each name
+    checked against those the source holds."""
+    for column, wanted in (("estimator", rows), ("track", tracks), ("system", systems)):
+        if wanted is None:
+            continue
+        wanted = list(wanted)
+        present = list(dict.fromkeys(source[column]))
+        unknown = [name for name in wanted if name not in present]
+        if unknown:
+            raise ValueError(
+                f"the source results hold no {column} {', '.join(map(repr, unknown))}; "
+                f"valid: {', '.join(present)}"
+            )
+        source = source[source[column].isin(wanted)]
+    for track in set(source["track"]):
+        get_track(track)  # a track the cells name must still exist
+    return source
