@@ -55,6 +55,9 @@ def test_a_model_several_rows_share_is_counted_once():
     task = Task("duffing", "zero")
     assert records.seconds(Job("a", "duffing", (task,), 0)) == 110.0
     assert records.seconds(Job("b", "duffing", (task,), 0)) == 20.0
+    resumed = regenerate._CostRecords(frame.assign(system="duffing"))
+    resumed.made([("a", "duffing/zero@v1", 0)])  # a's cell is done: its Phase 1 is trained
+    assert resumed.seconds(Job("b", "duffing", (task,), 0)) == 20.0
 
 
 def test_an_interrupted_regeneration_resumes_and_makes_each_cell_once(

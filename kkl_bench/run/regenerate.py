@@ -107,7 +107,7 @@ def plan(
     source = source[source["profile"] == profile.name]
     wanted = set(zip(source["estimator"], source["task"], source["seed"], strict=True))
     known = _CostRecords(source)
-    jobs, done = [], 0
+    planned, done = [], 0
     for row, cells in source.groupby("estimator", sort=False):
         derived = bool(variants.split_row(row)[1])
         spec = RunSpec(
@@ -123,7 +123,12 @@ def plan(
             own_rows_only=not derived,
         )
         todo, cached = harness.plan(spec)
-        done += sum((c.estimator, c.task, c.seed) in wanted for c in cached)
+        finished = [(c.estimator, c.task, c.seed) for c in cached]
+        done += sum(key in wanted for key in finished)
+        known.made(key for key in finished if key in wanted)
+        planned.append((spec, todo))
+    jobs = []
+    for spec, todo in planned:
         for job in todo:
             tasks = tuple(t for t in job.tasks if (job.estimator, t.id, job.seed) in wanted)
             if tasks:
@@ -142,10 +147,19 @@ class _CostRecords:
         }
         self.trained: set[tuple] = set()
 
+    def made(self, cells) -> None:
+        """Count as trained the models of the cells ``(row, task id, seed)`` the target
+        folder already holds (a resumed regeneration): the jobs that share them load them."""
+        for key in cells:
+            cell = self.cells[key]
+            for phase, seconds in phase_seconds(cell).items():
+                self.trained.add((cell.system, cell.seed, phase, seconds))
+
     def seconds(self, job: Job) -> float:
         """The estimated wall time of ``job``. A model several rows share (a Phase-1 model,
         the nominal network a ``+logged`` row fine-tunes) reads the same training seconds
-        in each: it is counted by the first job that needs it only."""
+        in each: it is counted by the first job that needs it only, and not at all if a
+        cell made from it is already in the target folder."""
         cells = [self.cells[(job.estimator, task.id, job.seed)] for task in job.tasks]
         fit = 0.0
         for phase, seconds in phase_seconds(cells[0]).items():
