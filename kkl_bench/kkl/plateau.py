@@ -25,7 +25,8 @@ import torch
 from kkl_bench.support.convergence import STOPPED_BY
 
 PLATEAU, CAP, DIVERGED = STOPPED_BY
-"""Why a training stopped (the verdicts they read as: :data:`~kkl_bench.support.convergence.STOPPED_BY`)."""
+"""Why a training stopped (the verdicts they read as:
+:data:`~kkl_bench.support.convergence.STOPPED_BY`)."""
 
 
 @dataclass(frozen=True)

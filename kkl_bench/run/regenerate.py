@@ -13,9 +13,9 @@ of work, not cells.
 The run is resumable like ``kkl-bench run``: cells already in the target folder are
 skipped, and a killed training continues from its checkpoint in the model cache. Each
 job's measured processor time (one thread per job: its core-seconds) is added to the
-target folder's
-:data:`~kkl_bench.run.ledger.LEDGER_FILE` when it ends, so the core-hours of a regeneration spread over
-several invocations, or machines, add up; the board's Reproduce section reads them.
+target folder's :data:`~kkl_bench.run.ledger.LEDGER_FILE` when it ends, so the
+core-hours of a regeneration spread over several invocations, or machines, add up; the
+board's Reproduce section reads them.
 """
 
 from __future__ import annotations
@@ -217,9 +217,9 @@ def run(
     scheduler: str | None = None,
 ) -> dict[str, Any]:
     """Run ``planned``'s jobs (``jobs`` at once, through
-    :func:`~kkl_bench.support.executors.execute`), adding each finished job's processor and wall
-    time to the ledger in ``into`` as it ends; ``progress(planned_job, outcome)`` after
-    each. Returns the ledger."""
+    :func:`~kkl_bench.support.executors.execute`), adding each finished job's processor
+    and wall time to the ledger in ``into`` as it ends; ``progress(planned_job, outcome)``
+    after each. Returns the ledger."""
     by_job = {planned_job.job: planned_job for planned_job in planned.jobs}
     arguments = [(p.spec, p.job) for p in planned.jobs]
     for outcome, seconds, wall in execute(_timed_job, arguments, jobs, executor, scheduler):

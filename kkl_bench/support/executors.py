@@ -6,11 +6,12 @@ loky gives its workers; at most ``cores // jobs``) so that N workers do not
 oversubscribe the cores; with one job it runs them in this process, limited
 likewise. One thread a job is the default: the benchmark's networks and filters
 are small, a second thread speeds a job up little, and two runs side by side on
-the same cores, which cannot see each other, then never oversubscribe them. ``dask`` sends the same jobs through joblib's Dask backend to a
-``distributed`` cluster: the scheduler at ``scheduler`` if given (which is how
-SLURM or PBS clusters are reached, through dask-jobqueue), else a
-``LocalCluster`` of ``jobs`` single-threaded worker processes. Results come
-back in completion order.
+the same cores, which cannot see each other, then never oversubscribe them.
+
+``dask`` sends the same jobs through joblib's Dask backend to a ``distributed``
+cluster: the scheduler at ``scheduler`` if given (which is how SLURM or PBS clusters
+are reached, through dask-jobqueue), else a ``LocalCluster`` of ``jobs``
+single-threaded worker processes. Results come back in completion order.
 """
 
 from __future__ import annotations
