@@ -62,3 +62,13 @@ def test_the_shipped_table_covers_the_quick_job_of_the_readme():
     table = fit_times.shipped().set_index(fit_times.KEY)
     for system in ("duffing", "vdp", "rossler", "lorenz"):
         assert ("quick", "dynamic_hyperkkl", system) in table.index
+
+
+def test_the_bar_counts_every_fit_of_a_system_fitted_per_task(tmp_path, capsys):
+    """On the hard track one estimator has a fit per measurement model on one system: the
+    bar shares each fit's estimate over its own cells and ends at 100 %."""
+    argv = ["run", "--estimator", "ekf", "--system", "duffing", "--track", "hard"]
+    regimes = ["--regime", "outliers-sinusoid", "quantized-sinusoid"]
+    assert main([*argv, *regimes, "--results", str(tmp_path)]) == 0
+    error = capsys.readouterr().err
+    assert "2 fits of ekf making 2 cells" in error and "100%" in error

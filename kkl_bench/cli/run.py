@@ -147,9 +147,10 @@ def run_command(args: argparse.Namespace) -> int:
         )
     todo, done = harness.plan(spec)
     weights = announce(spec, todo, len(done), args.profile_given)
-    per_cell = {
-        (job.estimator, job.system, job.seed): weight / len(job.tasks)
+    per_cell = {  # a fit's estimated seconds, shared out over the cells it scores
+        (job.estimator, task.id, job.seed): weight / len(job.tasks)
         for job, weight in zip(todo, weights, strict=True)
+        for task in job.tasks
     }
     with (
         tqdm(
@@ -167,7 +168,7 @@ def run_command(args: argparse.Namespace) -> int:
         def progress(cell, outcome):
             if outcome == "error":
                 tqdm.write(f"error in {cell.estimator} {cell.task}: {cell.error.splitlines()[-1]}")
-            bar.update(per_cell.get((cell.estimator, cell.system, cell.seed), 0.0))
+            bar.update(per_cell.get((cell.estimator, cell.task, cell.seed), 0.0))
 
         try:
             summary = harness.run(
