@@ -15,27 +15,16 @@ built-in learned row gets (protocol section 6.5).
   ``kkl-bench cost`` load it instead of training again; a killed training continues
   from its checkpoint.
 
-The README's "A learned estimator" shows all three in one plugin.
+The README's plugin package ("A plugin package: a new system and a learned estimator")
+shows all three in one plugin.
 """
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
-
-from kkl_bench.estimator import FitContext
-from kkl_bench.kkl.config import from_budget
+from kkl_bench.kkl.config import from_budget as budget
 from kkl_bench.kkl.optimize import Training
 from kkl_bench.kkl.optimize import minimize as train
 from kkl_bench.kkl.phase2 import load_or_train as cached
 from kkl_bench.kkl.plateau import PlateauRule
 
 __all__ = ["PlateauRule", "Training", "budget", "cached", "train"]
-
-C = TypeVar("C")
-
-
-def budget(config_class: type[C], context: FitContext, **overrides: Any) -> C:
-    """An instance of the dataclass ``config_class`` whose fields the profile's budget for
-    this fit sets (a value, or a table by system), the others at their defaults; then
-    ``overrides``. ``budget(PlateauRule, context)`` is the profile's plateau rule."""
-    return from_budget(config_class, context, **overrides)

@@ -142,27 +142,32 @@ def adapt(
     def latent(y: np.ndarray, u: np.ndarray) -> np.ndarray:
         return model.observer.run(y, ExactInjection(model, system.g, u, gain))
 
-    def validation_rmse() -> float:  # the injected observer's, on its own trajectories
-        return float(rmse(x_val, model.decode(latent(y_val, u_val))).mean())
+    def injected_rmse(z_val: np.ndarray) -> float:  # the injected observer's validation RMSE
+        return float(rmse(x_val, model.decode(z_val)).mean())
 
     model.decoder.requires_grad_(True)
     cap = config.adaptation_steps // config.adaptation_rounds
-    curve = [(0, validation_rmse())]
+    states, states_val = scored(x), x_val[:, start:].reshape(-1, system.n_x)
+    # the validation trajectories' latent states under the current decoder: they give the
+    # injected observer's RMSE after a round and the next round's validation pairs
+    z_val = latent(y_val, u_val)
+    curve = [(0, injected_rmse(z_val))]
     best = (curve[0][1], 0, copy.deepcopy(model.decoder.state_dict()))
     for round_ in range(1, config.adaptation_rounds + 1):
         training = train_decoder(
             model.decoder,
             scored(latent(y, u)),
-            scored(x),
+            states,
             cap,
             config.batch,
             generator,
             f"{system.name}: adapting T* ({round_}/{config.adaptation_rounds})",
-            validation=(scored(latent(y_val, u_val)), x_val[:, start:].reshape(-1, system.n_x)),
+            validation=(scored(z_val), states_val),
             rule=rule,
         )
         log[f"round {round_}"] = training.log()
-        curve.append((curve[-1][0] + len(training.losses), validation_rmse()))
+        z_val = latent(y_val, u_val)
+        curve.append((curve[-1][0] + len(training.losses), injected_rmse(z_val)))
         if curve[-1][1] < best[0]:
             best = (curve[-1][1], round_, copy.deepcopy(model.decoder.state_dict()))
     model.decoder.load_state_dict(best[2])

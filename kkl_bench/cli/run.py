@@ -178,6 +178,7 @@ def run_command(args: argparse.Namespace) -> int:
                 executor=args.executor,
                 scheduler=args.scheduler,
                 threads=args.threads,
+                planned=(todo, done),
             )
         except KeyboardInterrupt:
             print(f"kkl-bench: interrupted; {RESUME}", file=sys.stderr)
@@ -202,7 +203,7 @@ def announce(spec: harness.RunSpec, todo, done: int, profile_given: bool) -> lis
     cells = sum(len(job.tasks) for job in todo)
     rows = ", ".join(dict.fromkeys(job.estimator for job in todo)) or "nothing"
     profile = spec.profile.name + ("" if profile_given else " (the default; --profile to choose)")
-    table = fit_times.known(spec.results_dir)
+    table = fit_times.known(spec.results_dir, spec.profile.name)
     seconds, unknown = fit_times.estimate(
         [(job.estimator, job.system, len(job.tasks)) for job in todo], spec.profile.name, table
     )

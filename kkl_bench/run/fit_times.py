@@ -64,12 +64,13 @@ def shipped() -> pd.DataFrame:
     return pd.read_csv(io.StringIO(source.read_text()))
 
 
-def known(results_dir: Path | None) -> pd.DataFrame:
-    """The fit times a run can estimate from: those measured from the cells in
-    ``results_dir`` (this machine's own), then the shipped ones for what those lack."""
+def known(results_dir: Path | None, profile: str) -> pd.DataFrame:
+    """The fit times a run on ``profile`` can estimate from: those measured from that
+    profile's cells in ``results_dir`` (this machine's own), then the shipped ones for
+    what those lack."""
     local = pd.DataFrame(columns=COLUMNS)
     if results_dir is not None and Path(results_dir).is_dir():
-        local = measure(load_results(results_dir, damaged=[]))
+        local = measure(load_results(results_dir, damaged=[], profile=profile))
     frames = [frame for frame in (local, shipped()) if not frame.empty]
     both = pd.concat(frames) if frames else pd.DataFrame(columns=COLUMNS)
     return both.drop_duplicates(KEY, keep="first").set_index(KEY)

@@ -312,6 +312,7 @@ def run(
     executor: str = "loky",
     scheduler: str | None = None,
     threads: int | None = None,
+    planned: tuple[list[Job], list[CellResult]] | None = None,
 ) -> RunSummary:
     """Run the grid of ``spec``; ``progress(cell, status)`` is called for every cell.
 
@@ -322,12 +323,13 @@ def run(
     :func:`kkl_bench.support.executors.execute` with ``jobs``, ``executor``, ``scheduler`` and
     ``threads`` (per job; default one).
     If a worker dies, every finished cell is kept, the others are recorded as errors,
-    and the run returns.
+    and the run returns. ``planned`` is :func:`plan` of ``spec`` if the caller made it
+    already (to announce the run); each job rechecks its cells under its claim anyway.
     """
     check_writable(spec.results_dir)
     summary = RunSummary()
     report = progress or (lambda cell, status: None)
-    todo, cached = plan(spec)
+    todo, cached = planned if planned is not None else plan(spec)
     for cell in cached:
         summary.cached.append(cell)
         report(cell, "cached")

@@ -269,9 +269,13 @@ def move_aside(path: Path) -> Path:
     return aside
 
 
-def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = None) -> pd.DataFrame:
-    """Every cell under ``results_dir``, of every track, as one row (per-trajectory values as
-    list columns).
+def load_results(
+    results_dir: Path,
+    damaged: list[DamagedCellError] | None = None,
+    profile: str | None = None,
+) -> pd.DataFrame:
+    """Every cell under ``results_dir`` (of ``profile`` only, if given), of every track, as
+    one row (per-trajectory values as list columns).
 
     Columns: the :class:`CellResult` fields, plus ``rmse_mean``, ``rmse_std``,
     ``smape_mean``, ``smape_std``, ``nrmse_mean``, ``nrmse_std`` and
@@ -283,7 +287,9 @@ def load_results(results_dir: Path, damaged: list[DamagedCellError] | None = Non
     is given, is appended to it and left out.
     """
     rows = []
-    paths = [*Path(results_dir).glob("*/*/*/*.json"), *Path(results_dir).glob("*/*/*/*/*.json")]
+    root = Path(results_dir)
+    folder = profile or "*"
+    paths = [*root.glob(f"{folder}/*/*/*.json"), *root.glob(f"{folder}/*/*/*/*.json")]
     for path in sorted(paths):
         try:
             cell = read_cell(path)

@@ -11,10 +11,10 @@ from kkl_bench.testing.estimators import (
     check_budget,
     check_estimator,
     check_systems,
-    describe,
     estimator_checks,
     run_checks,
 )
+from kkl_bench.testing.kit import describe
 from kkl_bench.testing.systems import SystemConformance, check_system, run_system_checks
 
 __all__ = [

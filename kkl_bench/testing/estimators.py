@@ -41,6 +41,7 @@ from kkl_bench.run.spec import FitConditions, conditioned_context
 from kkl_bench.suite.plants import logged_data
 from kkl_bench.suite.task import get_profile
 from kkl_bench.suite.tracks import get_track
+from kkl_bench.testing.kit import NamedChecks, describe, outcomes
 from kkl_bench.training import TrainingData
 
 CHECK_STEPS = 200
@@ -48,7 +49,7 @@ CHECK_STEPS = 200
 CHECK_BATCH = 3
 
 
-class Conformance:
+class Conformance(NamedChecks):
     """Runs the named checks on one estimator (fitted once, lazily).
 
     Parameters
@@ -114,12 +115,6 @@ class Conformance:
     @functools.cached_property
     def x_hat(self) -> np.ndarray:
         return self.estimate(self.fitted)
-
-    def checks(self) -> Iterator[tuple[str, Callable[[], None]]]:
-        """``(name, check)`` pairs; a check raises AssertionError on failure."""
-        for name in sorted(dir(self)):
-            if name.startswith("check_"):
-                yield name, getattr(self, name)
 
     def check_params_and_clone(self) -> None:
         """``get_params`` returns the ``__init__`` keywords; ``clone`` rebuilds an equal, unfitted copy."""
@@ -301,18 +296,8 @@ def run_checks(
     failure. A fit that raises fails every check of its system with that error. An
     unknown estimator or system raises before any check."""
     for system in _systems(estimator, systems):
-        for name, check in estimator_checks(estimator, system, budget):
-            try:
-                check()
-            except Exception as error:
-                yield system, name, error
-            else:
-                yield system, name, None
-
-
-def describe(error: BaseException) -> str:
-    """``Type: message`` of a failed check, as FAIL lines show it."""
-    return f"{type(error).__name__}: {error}"
+        for name, error in outcomes(estimator_checks(estimator, system, budget)):
+            yield system, name, error
 
 
 def check_estimator(

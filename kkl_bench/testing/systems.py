@@ -11,7 +11,7 @@ protocol's horizon.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from kkl_bench.protocol import DT, N_SAMPLES
 from kkl_bench.protocol.simulate import simulate
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import regimes, systems
+from kkl_bench.testing.kit import NamedChecks, describe, outcomes
 
 POINTS = 16
 """Points of the x0 box the Jacobians and the torch evaluation are checked at."""
@@ -29,7 +30,7 @@ JACOBIAN_TOLERANCE = 1e-5
 the largest entry of the finite differences (at least 1)."""
 
 
-class SystemConformance:
+class SystemConformance(NamedChecks):
     """The named checks of one system (a registered name or an instance)."""
 
     def __init__(self, system: str | System) -> None:
@@ -40,12 +41,6 @@ class SystemConformance:
     @property
     def n_x(self) -> int:
         return len(self.system.state_names)
-
-    def checks(self) -> Iterator[tuple[str, Callable[[], None]]]:
-        """``(name, check)`` pairs; a check raises AssertionError on failure."""
-        for name in sorted(dir(self)):
-            if name.startswith("check_"):
-                yield name, getattr(self, name)
 
     def check_declared_attributes(self) -> None:
         """``name``, ``state_names``, ``g`` and the x0 box are declared with ``n_x`` entries
@@ -143,21 +138,11 @@ class SystemConformance:
 def run_system_checks(system: str | System) -> Iterator[tuple[str, BaseException | None]]:
     """Run every check on ``system``; yields ``(name, None)`` on success, ``(name, error)``
     on failure."""
-    for name, check in SystemConformance(system).checks():
-        try:
-            check()
-        except Exception as error:
-            yield name, error
-        else:
-            yield name, None
+    return outcomes(SystemConformance(system).checks())
 
 
 def check_system(system: str | System) -> None:
     """Run every check on ``system``; raise one AssertionError listing all failures."""
-    failures = [
-        f"{name}: {type(error).__name__}: {error}"
-        for name, error in run_system_checks(system)
-        if error
-    ]
+    failures = [f"{name}: {describe(error)}" for name, error in run_system_checks(system) if error]
     if failures:
         raise AssertionError(f"{len(failures)} system check(s) failed:\n" + "\n".join(failures))
