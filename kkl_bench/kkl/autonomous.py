@@ -61,7 +61,7 @@ from kkl_bench.registry import regimes
 from kkl_bench.support.devices import draw_integers, draw_normal, to_numpy, training_on
 from kkl_bench.training import FORCED_TRAINING
 
-TOOLKIT_VERSION = 6
+TOOLKIT_VERSION = 7
 """Bump when a change to this module changes what a given configuration trains."""
 
 RATE_CANDIDATES = ((1.0, 5.0), (2.0, 10.0), (5.0, 20.0), (10.0, 40.0))
