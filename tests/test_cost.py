@@ -10,10 +10,13 @@ import pandas as pd
 import pytest
 import torch
 
+from kkl_bench import variants
 from kkl_bench.analysis import cost
 from kkl_bench.analysis.leaderboard import measured_cost_table
 from kkl_bench.cli import main
 from kkl_bench.report.markdown import table
+from kkl_bench.run.spec import RunSpec, fit_context_for_row
+from kkl_bench.suite.task import get_profile
 
 
 class FakeClock:
@@ -220,6 +223,49 @@ def test_flops_are_what_an_estimator_declares_or_its_layer_sizes_give():
         cost.peak_gflops("float16")
 
 
+def test_a_floor_adds_the_draws_and_transcendentals_a_row_declares():
+    class Sampler:
+        def operations_per_step(self):
+            return {"normal": 30, "transcendental": 10}
+
+    counts = cost.counted_operations(Sampler())
+    assert counts == {"normal": 30.0, "uniform": 0.0, "transcendental": 10.0}
+    assert cost.counted_operations(object()) == dict.fromkeys(cost.OPERATIONS, 0.0)
+    unit_ns = {"normal": 2.0, "uniform": 1.0, "transcendental": 4.0}
+    # 2000 flops at 1 GFLOP/s: 2 µs; 30 normals at 2 ns and 10 exps at 4 ns: 0.1 µs
+    assert cost.floor_us(2000.0, 1.0, counts, unit_ns) == pytest.approx(2.1)
+
+
+def test_the_operations_cost_what_this_machine_takes_for_one():
+    unit_ns = cost.operation_ns(rounds=1)
+    assert set(unit_ns) == set(cost.OPERATIONS)
+    assert all(0 < ns < 1000 for ns in unit_ns.values())
+
+
+def test_the_particle_filter_counts_a_draw_per_state_and_output_of_each_particle(tmp_path):
+    spec = RunSpec(
+        estimators=("particle_filter[n=50]", "enkf[inflation=1.0]"),
+        systems=("lorenz",),
+        tracks=("hard",),
+        regimes=("outliers-sinusoid",),
+        profile=get_profile("quick"),
+        seeds=(0,),
+        results_dir=tmp_path,
+        cache_dir=tmp_path,
+    )
+    tasks = spec.tasks()
+    pf = variants.build("particle_filter[n=50]").fit(
+        fit_context_for_row(spec, "particle_filter[n=50]", "lorenz", tasks, 0)
+    )
+    # Lorenz, one output under outliers: 3 + 1 normals, a uniform for the component and
+    # exp, the law's exp and log1p and the two-component proposal's 6 per particle
+    assert pf.operations_per_step() == {"normal": 200, "uniform": 51, "transcendental": 450}
+    enkf = variants.build("enkf[inflation=1.0]").fit(
+        fit_context_for_row(spec, "enkf[inflation=1.0]", "lorenz", tasks, 0)
+    )
+    assert enkf.operations_per_step() == {"normal": 24 * 3, "uniform": 0, "transcendental": 0}
+
+
 @pytest.mark.slow
 def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_and_floor(tmp_path):
     out = tmp_path / "board"
@@ -233,7 +279,10 @@ def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_and_floor(t
     assert kkl["reference_engine_us_per_trajectory_step"].isna().all()
     for row in (ukf, kkl):  # both counted: the filter by its algorithm, the network by layers
         assert (row["flops_per_trajectory_step"] > 0).all() and (row["peak_gflops"] > 0).all()
-        floor = row["flops_per_trajectory_step"] / (row["peak_gflops"] * 1e3)
+        operations = sum(
+            row[f"{kind}s_per_trajectory_step"] * row[f"{kind}_ns"] for kind in cost.OPERATIONS
+        )
+        floor = row["flops_per_trajectory_step"] / (row["peak_gflops"] * 1e3) + operations / 1e3
         np.testing.assert_allclose(row["floor_us_per_trajectory_step"], floor, rtol=1e-5)
         ratio = row["us_per_trajectory_step"] / floor  # the file keeps 6 digits
         np.testing.assert_allclose(row["over_floor"], ratio, rtol=1e-5)

@@ -1,6 +1,7 @@
 """The particle filter against known answers: resampling counts, the optimal proposal's
 weights, the Kalman filter on a linear system, and convergence in the particle count."""
 
+import numba
 import numpy as np
 import pytest
 from kkl_bench.estimators.filters.kalman import box_prior
@@ -26,6 +27,34 @@ def test_systematic_resampling_copies_each_particle_floor_or_ceil_of_n_w_times()
         assert np.all(counts >= np.floor(4 * weights)) and np.all(counts <= np.ceil(4 * weights))
         assert np.all(np.diff(ancestors, axis=1) >= 0)
     assert systematic_resample(weights, np.zeros(3))[1].tolist() == [1, 1, 1, 1]
+
+
+def test_a_trajectorys_ancestors_do_not_depend_on_the_other_rows():
+    # equal weights put a position exactly on a cumulative weight (0.3 against 0.1 + 0.1 +
+    # 0.1); a search over all rows at once, row b shifted by b, rounded the tie differently
+    # in each row
+    ancestors = systematic_resample(np.full((4, 10), 0.1), np.zeros(4))
+    assert (ancestors == ancestors[0]).all()
+    assert ancestors[0].tolist() == [0, 1, 2, 2, 4, 5, 6, 7, 8, 9]
+
+
+def test_the_compiled_kernels_draw_numpys_numbers_from_a_generator():
+    """The compiled filters draw inside the kernel from each trajectory's generator: numba
+    must give the numbers numpy gives, and leave the generator where numpy would."""
+
+    @numba.njit
+    def draw(rng, normals, uniforms):
+        for i in range(normals.shape[0]):
+            normals[i] = rng.standard_normal()
+        for i in range(uniforms.shape[0]):
+            uniforms[i] = rng.random()
+
+    inside, outside = np.random.default_rng(7), np.random.default_rng(7)
+    normals, uniforms = np.empty(1000), np.empty(10)
+    draw(inside, normals, uniforms)
+    assert np.array_equal(normals, outside.standard_normal(1000))
+    assert np.array_equal(uniforms, outside.random(10))
+    assert inside.random() == outside.random()
 
 
 def test_optimal_proposal_weights_of_a_linear_output_are_the_predictive_likelihood():

@@ -51,7 +51,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from kkl_bench.estimators.filters import enkf_kernels
+from kkl_bench.estimators.filters import enkf_kernels, traced_transition
 from kkl_bench.estimators.filters.kalman import (
     QUANTIZERS,
     TwoEngines,
@@ -304,6 +304,14 @@ class EnsembleKalman(TwoEngines, CalibratesOnLoggedData, Estimator):
         inflation = 2 * members * n + n
         return float(forecast + means + analyses + inflation)
 
+    def operations_per_step(self) -> dict[str, float]:
+        """What one trajectory-step must draw besides its flops (protocol 6.3): every
+        member's ``n_x`` standard normal numbers of process noise (none without it); the
+        analysis's square roots are counted as flops."""
+        context = self.check_fitted()
+        noisy = context.sigma_w != 0
+        return {"normal": self.n * self.system_.n_x * noisy, "uniform": 0, "transcendental": 0}
+
     def estimate(self, t, y, u):
         context = self.check_fitted()
         dt = float(t[1] - t[0]) if len(t) > 1 else context.dt
@@ -331,27 +339,30 @@ class EnsembleKalman(TwoEngines, CalibratesOnLoggedData, Estimator):
         )
 
     def _estimate_compiled(self, model, dt: float, y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """:meth:`estimate` on the compiled kernel: each trajectory in turn, on the random
-        numbers its generator gives the reference engine (the first ensemble, then every
-        step's process noise, drawn up front)."""
+        """:meth:`estimate` on the compiled kernel: one call a trajectory, which draws from
+        the trajectory's generator the numbers the reference engine draws (the first
+        ensemble, then every step's process noise)."""
         context = self.check_fitted()
         batch, steps, _ = y.shape
-        n_x, sigma_w = model.n_x, context.sigma_w
-        x_hat = np.full((batch, steps, n_x), np.nan)
+        x_hat = np.full((batch, steps, model.n_x), np.nan)
         if self.taper_ is None:
             near, taper = np.zeros((0, 0), dtype=np.int64), np.zeros((0, 0))
         else:
             near, taper = self.taper_.near.astype(np.int64), self.taper_.weights
+        low, high = (
+            np.asarray(bound, dtype=np.float64) for bound in (context.x0_low, context.x0_high)
+        )
         y, u = self.kernel_inputs(y, u)
-        etkf = bind(enkf_kernels.etkf, model.drift, model.output, model.sense, model.constrain)
+        transition = traced_transition.transition(model)
+        etkf = bind(
+            enkf_kernels.etkf, model.drift, model.output, model.sense, model.constrain,
+            enkf_kernels.untraced if transition is None else transition,
+        )  # fmt: skip
         for b, rng in enumerate(trajectory_generators(context.seed, y[:, 0])):
-            initial = rng.uniform(context.x0_low, context.x0_high, (self.n, n_x))
-            draws = (steps - 1, self.n, n_x) if sigma_w != 0 and steps > 1 else (0, self.n, n_x)
-            noise = rng.standard_normal(draws)
             etkf(
-                model.p, model.q, model.s, model.g, y[b], u[b], dt, float(sigma_w),
-                float(context.measurement.variance), float(self.inflation_), near, taper,
-                initial, noise, x_hat[b],
+                model.p, model.q, model.s, model.g, transition is not None, rng, y[b], u[b], dt,
+                float(context.sigma_w), float(context.measurement.variance),
+                float(self.inflation_), near, taper, low, high, self.n, x_hat[b],
             )  # fmt: skip
         return x_hat
 

@@ -39,9 +39,11 @@ sample is always measured (protocol 7.6).
 Every trajectory draws from its own generator, keyed by the seed and its
 first measurement, so estimates are causal, batch-independent and
 reproducible. Work is vectorised over particles and trajectories, in chunks
-of trajectories that bound the memory. The compiled engine (``engine='compiled'``)
-moves and reweights the particles in a numba kernel
-(:mod:`kkl_bench.estimators.filters.particle_kernels`) on the same draws, and shares the rest.
+of trajectories that bound the memory (the reference engine's) and keep both engines'
+draws the same. The compiled engine (``engine='compiled'``, the default) runs each
+trajectory from its second sample on in one numba kernel
+(:mod:`kkl_bench.estimators.filters.particle_kernels`) on the same draws; the first
+sample's proposal is the reference engine's numpy code for both.
 """
 
 from __future__ import annotations
@@ -88,10 +90,11 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
     n: particles per trajectory.
     proposal: ``"optimal"`` (default) or ``"bootstrap"`` (the transition; for comparison).
     resample_below: resample when the effective sample size falls below this fraction of ``n``.
-    engine: ``"reference"`` (numpy, the published cells') or ``"compiled"``: each step's
-        transition, proposal and weights in a numba kernel over the system's compiled
-        model, on the same random numbers (:mod:`kkl_bench.estimators.filters.particle_kernels`);
-        a system without a compiled model runs the reference engine.
+    engine: ``"compiled"`` (the default, the published cells' since issue 65): one numba
+        kernel a trajectory over the system's compiled model, drawing the reference
+        engine's random numbers (:mod:`kkl_bench.estimators.filters.particle_kernels`); a
+        system without a compiled model runs the reference engine. ``"reference"``: numpy,
+        vectorised over particles and trajectories, what the kernel is checked against.
     """
 
     name = "particle_filter"
@@ -104,7 +107,7 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
         n: int = 10000,
         proposal: str = "optimal",
         resample_below: float = 0.5,
-        engine: str = "reference",
+        engine: str = "compiled",
     ) -> None:
         self.n = n
         self.proposal = proposal
@@ -155,6 +158,27 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
         n, m = model.n_x, model.n_y
         return float(self.n * (model.step_flops + 2 * n * m + m + 3 * n * n + n + 13))
 
+    def operations_per_step(self) -> dict[str, float]:
+        """What one trajectory-step must draw and evaluate besides its flops (protocol 6.3):
+        per particle, ``n_x`` standard normal numbers for the process and, with the optimal
+        proposal, ``n_y`` for the measurement, a uniform number to pick a mixture's
+        component, and the transcendental functions: the weight's ``exp``, the noise law's
+        log-density (``log1p`` an output for Student's t; ``exp`` and ``log1p`` for the
+        outlier mixture) and a mixture proposal's ``2 c + 2`` (its components' ``exp``
+        twice and two ``log``); and one uniform number, the resampling offset."""
+        context = self.check_fitted()
+        system, measurement = context.system, context.measurement
+        mixture = measurement.mixture if system.n_y == 1 else None
+        optimal = self.proposal == "optimal"
+        components = len(mixture) if mixture and optimal else 1
+        law = {"student-t": 1, "outliers": 2}.get(measurement.noise.law, 0)
+        proposal = 2 * components + 2 if components > 1 else 0
+        return {
+            "normal": self.n * (system.n_x + (system.n_y if optimal else 0)),
+            "uniform": self.n * (components > 1) + 1,
+            "transcendental": self.n * (1 + law * system.n_y + proposal),
+        }
+
     def estimate(self, t, y, u):
         context = self.check_fitted()
         system = context.system
@@ -181,36 +205,61 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
         def uniforms():  # (batch, n)
             return np.stack([rng.random(self.n) for rng in generators])
 
-        batch, steps, _ = y.shape
-        x_hat = np.full((batch, steps, system.n_x), np.nan)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             particles, log_weights = self._initial(
                 system, y[:, 0], mixture or ((1.0, measurement.variance),), normals, uniforms
             )
-            for k in range(steps):
-                if k > 0:
-                    step = self._step_reference if self.model_ is None else self._step_compiled
-                    particles, log_weights = step(
-                        particles,
-                        log_weights,
-                        u[:, k - 1, 0],
-                        y[:, k],
-                        dt,
-                        mixture,
-                        normals,
-                        uniforms,
-                    )
-                log_weights = log_weights - logsumexp(log_weights, axis=1, keepdims=True)
-                weights = np.exp(log_weights)
-                x_hat[:, k] = np.einsum("bn,bnx->bx", weights, particles)
-                if k + 1 < steps:
-                    particles, log_weights = self._resample(
-                        particles, log_weights, weights, generators
-                    )
+            run = self._run_reference if self.model_ is None else self._run_compiled
+            x_hat = run(particles, log_weights, y, u, dt, mixture, generators, normals, uniforms)
         # a trajectory whose weights all vanished (or overflowed) stays NaN from then on
         return np.where(
             np.isnan(x_hat).any(axis=-1, keepdims=True).cumsum(axis=1) > 0, np.nan, x_hat
         )
+
+    def _run_reference(self, particles, log_weights, y, u, dt, mixture, generators, normals, uniforms):  # fmt: skip
+        """The estimates ``(batch, steps, n_x)`` from the first sample's ``particles (batch,
+        n, n_x)`` and ``log_weights (batch, n)`` on, in numpy (:meth:`_step_reference`)."""
+        batch, steps, _ = y.shape
+        x_hat = np.full((batch, steps, particles.shape[-1]), np.nan)
+        for k in range(steps):
+            if k > 0:
+                particles, log_weights = self._step_reference(
+                    particles, log_weights, u[:, k - 1, 0], y[:, k], dt, mixture, normals, uniforms
+                )
+            log_weights = log_weights - logsumexp(log_weights, axis=1, keepdims=True)
+            weights = np.exp(log_weights)
+            x_hat[:, k] = np.einsum("bn,bnx->bx", weights, particles)
+            if k + 1 < steps:
+                particles, log_weights = self._resample(particles, log_weights, weights, generators)
+        return x_hat
+
+    def _run_compiled(self, particles, log_weights, y, u, dt, mixture, generators, normals, uniforms):  # fmt: skip
+        """:meth:`_run_reference` by the compiled kernel, one call a trajectory
+        (:func:`~kkl_bench.estimators.filters.particle_kernels.filter_trajectory`), which draws
+        from each trajectory's generator the numbers the reference engine draws."""
+        context = self.check_fitted()
+        model, measurement = self.model_, context.measurement
+        batch, steps, _ = y.shape
+        present = np.isfinite(y).all(axis=-1)  # (batch, steps)
+        proposing = np.full(steps, self.proposal == "optimal") & present.any(axis=0)
+        components = np.array(mixture or ((1.0, measurement.variance),), dtype=np.float64)
+        law, constants = particle_kernels.noise_law_constants(measurement.noise)
+        y, u = self.kernel_inputs(y, u)
+        x_hat = np.full((batch, steps, model.n_x), np.nan)
+        run = bind(
+            particle_kernels.filter_trajectory, model.drift, model.output,
+            model.output_jacobian, model.sense, model.sense_slope, model.constrain,
+        )  # fmt: skip
+        for b, rng in enumerate(generators):
+            run(
+                model.p, model.q, model.s, model.g, rng,
+                np.ascontiguousarray(particles[b].T, dtype=np.float64),
+                np.ascontiguousarray(log_weights[b], dtype=np.float64), u[b], dt, y[b],
+                present[b], proposing, present.all(axis=0), float(context.sigma_w**2),
+                components, model.constant_output_jacobian, law, constants,
+                float(self.resample_below), x_hat[b],
+            )  # fmt: skip
+        return x_hat
 
     def _step_reference(self, particles, log_weights, u, y, dt, mixture, normals, uniforms):
         """``(particles, log_weights)`` one step on: every particle moved (transition, or
@@ -245,38 +294,6 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
         log_likelihood = measurement.log_density(observed, system.h(particles))
         log_likelihood = np.where(present, log_likelihood, 0.0)
         return particles, log_weights + log_likelihood - log_ratio
-
-    def _step_compiled(self, particles, log_weights, u, y, dt, mixture, normals, uniforms):
-        """:meth:`_step_reference` by the compiled kernel
-        (:func:`~kkl_bench.estimators.filters.particle_kernels.propagate`), on the same draws."""
-        context = self.check_fitted()
-        model, measurement = self.model_, context.measurement
-        present = np.isfinite(y).all(axis=-1)
-        proposing = self.proposal == "optimal" and bool(present.any())
-        nothing = np.empty((0, 0, 0))
-        w, v, uniform, transition = normals(model.n_x), nothing, np.empty((0, 0)), nothing
-        if proposing:
-            v = normals(model.n_y)
-            if mixture is not None:
-                uniform = uniforms()
-            if not present.all():
-                transition = normals(model.n_x)
-        components = np.array(mixture or ((1.0, measurement.variance),), dtype=np.float64)
-        law, constants = particle_kernels.noise_law_constants(measurement.noise)
-        # moved and reweighted in place (the caller holds no other reference to them)
-        particles = np.ascontiguousarray(particles, dtype=np.float64)
-        log_weights = np.ascontiguousarray(log_weights, dtype=np.float64)
-        propagate = bind(
-            particle_kernels.propagate, model.drift, model.output, model.output_jacobian,
-            model.sense, model.sense_slope, model.constrain,
-        )  # fmt: skip
-        propagate(
-            model.p, model.q, model.s, model.g, particles, log_weights,
-            np.ascontiguousarray(u, dtype=np.float64), dt, np.ascontiguousarray(y), present,
-            float(context.sigma_w**2), components, proposing, law, constants, w, v, uniform,
-            transition,
-        )  # fmt: skip
-        return particles, log_weights
 
     def _initial(self, system: System, y0: np.ndarray, components, normals, uniforms):
         """Particles ``(batch, n, n_x)`` and log weights ``(batch, n)`` for the first sample

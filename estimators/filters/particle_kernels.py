@@ -1,22 +1,18 @@
-"""The particle filter's transition and weighting compiled: one step of every particle.
+"""The particle filter compiled: one call runs one trajectory from its first sample on.
 
-:func:`propagate` does, for each trajectory and particle, what
-:meth:`kkl_bench.estimators.filters.particle_filter.ParticleFilter._filter` does in numpy between
-two estimates: the RK4 transition mean, the draw from the (locally optimal, or the noise
-law's mixture of) proposal, the constraint, and the importance weight with the noise
-law's exact log-density, in the same operations and order, on the same standard normal
-and uniform numbers (drawn by the caller from each trajectory's generator, as the
-reference engine draws them). Normalising the weights, the estimate and resampling stay
-the reference engine's numpy code, so the compiled engine's estimates equal the
-reference's to rounding (``tests/test_filter_engines.py``).
-
-Shapes: ``particles: (batch, n, n_x)`` and ``log_weights: (batch, n)``, updated in place;
-``u: (batch,)`` the input held over the step; ``y: (batch, n_y)`` the measurements
-(read where ``present: (batch,)``); ``components: (c, 2)`` the proposal's Gaussian
-components ``(weight, variance)`` (one row unless the noise law is a mixture);
-``w: (batch, n, n_x)``, ``v: (batch, n, n_y)``, ``uniform: (batch, n)`` and
-``transition: (batch, n, n_x)`` standard normal and uniform draws (empty where a step
-draws none).
+:func:`filter_trajectory` does, for every step after the first sample, what
+:meth:`kkl_bench.estimators.filters.particle_filter.ParticleFilter._filter` does in numpy:
+the RK4 transition mean of every particle, the draw from the (locally optimal, or the
+noise law's mixture of) proposal, the constraint, the importance weight with the noise
+law's exact log-density, the normalisation, the estimate and systematic resampling, in
+the same operations and order. It draws its standard normal and uniform numbers from the
+trajectory's own ``numpy.random.Generator`` inside the kernel (numba runs numpy's
+algorithms on the generator's state: the same numbers), in the order the reference
+engine draws them, so the published random streams are kept and the two engines'
+estimates agree to rounding (``tests/test_filter_engines.py``). Every scratch array is
+allocated once a call; the particles stay in the model functions' layout ``(n_x, n)``
+from step to step; the sensor's Jacobian is evaluated once where it is the same at every
+point (:attr:`~kkl_bench.protocol.compiled.CompiledModel.constant_output_jacobian`).
 """
 
 from __future__ import annotations
@@ -50,7 +46,7 @@ def noise_law_constants(noise) -> tuple[int, np.ndarray]:
     return GAUSSIAN, np.array([noise.sigma**2])
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(inline="always", error_model="numpy")
 def _logaddexp(a, b):
     """numpy's ``logaddexp``."""
     if a == b:
@@ -64,27 +60,31 @@ def _logaddexp(a, b):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def log_likelihood(residual, law, constants, gaussian_norm):
-    """``log p(residual)`` of the noise law ``law`` (:func:`noise_law_constants`), summed over
-    the outputs, in the operations of :meth:`kkl_bench.measurement.NoiseLaw.log_density`
-    (``gaussian_norm = n_y log(2 pi variance)`` for the Gaussian law)."""
-    if law == GAUSSIAN:
+def log_likelihoods(y, outputs, law, constants, gaussian_norm, out):
+    """``out (N,)``: ``log p(y - outputs[:, i])`` of the noise law ``law``
+    (:func:`noise_law_constants`) for each of the ``N`` points of ``outputs (n_y, N)``,
+    summed over the outputs, in the operations of
+    :meth:`kkl_bench.measurement.NoiseLaw.log_density` (``gaussian_norm = n_y log(2 pi
+    variance)`` for the Gaussian law)."""
+    n_y, points = outputs.shape
+    for i in range(points):
         total = 0.0
-        for j in range(residual.shape[0]):
-            total += residual[j] ** 2
-        return -0.5 * (total / constants[0] + gaussian_norm)
-    total = 0.0
-    for j in range(residual.shape[0]):
-        z = residual[j] / constants[0]
-        if law == STUDENT_T:
-            nu = constants[1]
-            total += constants[2] - (nu + 1) / 2 * math.log1p(z**2 / nu)
-        else:
-            scale = constants[1]
-            inlier = constants[2] - 0.5 * z**2
-            outlier = constants[3] - 0.5 * (z / scale) ** 2
-            total += _logaddexp(inlier, outlier) - constants[4] - constants[5]
-    return total
+        if law == GAUSSIAN:
+            for j in range(n_y):
+                total += (y[j] - outputs[j, i]) ** 2
+            out[i] = -0.5 * (total / constants[0] + gaussian_norm)
+            continue
+        for j in range(n_y):
+            z = (y[j] - outputs[j, i]) / constants[0]
+            if law == STUDENT_T:
+                nu = constants[1]
+                total += constants[2] - (nu + 1) / 2 * math.log1p(z**2 / nu)
+            else:
+                scale = constants[1]
+                inlier = constants[2] - 0.5 * z**2
+                outlier = constants[3] - 0.5 * (z / scale) ** 2
+                total += _logaddexp(inlier, outlier) - constants[4] - constants[5]
+        out[i] = total
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -140,167 +140,299 @@ def _proposal_covariances(H, q, components, S, inverse, gain, log_det, log_det_p
     return True
 
 
-@numba.njit(cache=True, error_model="numpy")
-def _draw(mean, H, gain, innovation, root_q, root_r, w, v, out, process):
-    """Matheron's rule: ``out = mean + sqrt(q) w + gain (e - H sqrt(q) w - sqrt(r) v)``."""
-    n_y, n = H.shape
-    for i in range(n):
-        process[i] = root_q * w[i]
-    for i in range(n):
-        out[i] = mean[i] + process[i]
-    for i in range(n):
-        correction = 0.0
-        for j in range(n_y):
+@numba.njit(inline="always")
+def _gain_times(c, gain, vectors, j, i, column):
+    """Row ``j`` of component ``c``'s gain (``column``) times the point ``i`` of ``vectors
+    (n_y, N)``."""
+    total = 0.0
+    for a in range(vectors.shape[0]):
+        total += gain[c, j, a, column] * vectors[a, i]
+    return total
+
+
+@numba.njit(inline="always")
+def _component_sample(c, process, innovations, v, means, H, gain, root_r, out, residual):
+    """``out (n_x, N)``: each point's draw from component ``c``'s optimal proposal by
+    Matheron's rule, ``mean + sqrt(q) w + gain (e - H sqrt(q) w - sqrt(r) v)``, from
+    ``process = sqrt(q) w (n_x, N)``, the innovations ``e (n_y, N)`` and ``v (n_y, N)``.
+    ``H (n_y, n_x, columns)`` and ``gain (count, n_x, n_y, columns)`` hold one column
+    (the same at every point) or one a point; ``residual (n_y, N)`` is scratch."""
+    n_y, n, columns = H.shape
+    points = means.shape[1]
+    for a in range(n_y):
+        for i in range(points):
+            column = i if columns > 1 else 0
             along = 0.0
             for m in range(n):
-                along += H[j, m] * process[m]
-            correction += gain[i, j] * (innovation[j] - along - root_r * v[j])
-        out[i] = out[i] + correction
+                along += H[a, m, column] * process[m, i]
+            residual[a, i] = innovations[a, i] - along - root_r * v[a, i]
+    for j in range(n):
+        for i in range(points):
+            correction = _gain_times(c, gain, residual, j, i, i if columns > 1 else 0)
+            out[j, i] = means[j, i] + process[j, i] + correction
 
 
-@numba.njit(cache=True, error_model="numpy")
-def _proposal_log_density(sample, mean, gain, innovation, H, q, r, log_det_precision, norm, offset):
-    """``log q(sample)`` of one Gaussian proposal, whose mean is ``mean + gain e``
-    (``_GaussianProposal.log_density``; ``norm = n log(2 pi)``; ``offset: (n,)`` scratch)."""
-    n_y, n = H.shape
-    offset_sum = 0.0
+@numba.njit(inline="always")
+def _component_log_density(c, sample, means, innovations, H, gain, q, r, log_det_precision, norm, offset, out):  # fmt: skip
+    """``out (N,)``: ``log q_c(sample)`` of component ``c``'s optimal proposal, whose mean
+    is ``mean + gain e`` (``_GaussianProposal.log_density``; ``norm = n_x log(2 pi)``,
+    ``log_det_precision (count, columns)``; ``offset (n_x, N)`` scratch)."""
+    n_y, n, columns = H.shape
+    points = means.shape[1]
+    for j in range(n):
+        for i in range(points):
+            correction = _gain_times(c, gain, innovations, j, i, i if columns > 1 else 0)
+            offset[j, i] = sample[j, i] - (means[j, i] + correction)
+    for i in range(points):
+        column = i if columns > 1 else 0
+        offset_sum = 0.0
+        for j in range(n):
+            offset_sum += offset[j, i] ** 2
+        projected_sum = 0.0
+        for a in range(n_y):
+            along = 0.0
+            for j in range(n):
+                along += H[a, j, column] * offset[j, i]
+            projected_sum += along**2
+        quadratic = offset_sum / q + projected_sum / r
+        out[i] = 0.5 * (log_det_precision[c, column] - quadratic - norm)
+
+
+@numba.njit(inline="always")
+def _fill_normals(rng, out):
+    """``out (d, N)`` filled with standard normal numbers from ``rng`` point by point: the
+    numbers an ``(N, d)`` draw in C order gives, one column a point."""
+    for i in range(out.shape[1]):
+        for j in range(out.shape[0]):
+            out[j, i] = rng.standard_normal()
+
+
+@numba.njit(inline="always")
+def _store_covariances(H, q, components, column, Hs, gains, inverses, log_dets, log_det_precisions, singular, S, work):  # fmt: skip
+    """Component by component, what the proposal takes from the Jacobian ``H (n_y, n_x)``
+    alone (:func:`_proposal_covariances`) into column ``column`` of ``Hs``, ``gains``,
+    ``inverses``, ``log_dets``, ``log_det_precisions`` and ``singular``."""
+    count, n, n_y = gains.shape[0], H.shape[1], H.shape[0]
+    gain, inverse = np.empty((count, n, n_y)), np.empty((count, n_y, n_y))
+    log_det, log_det_precision = np.empty(count), np.empty(count)
+    singular[column] = not _proposal_covariances(
+        H, q, components, S, inverse, gain, log_det, log_det_precision, work
+    )
+    Hs[:, :, column] = H
+    gains[:, :, :, column] = gain
+    inverses[:, :, :, column] = inverse
+    log_dets[:, column] = log_det
+    log_det_precisions[:, column] = log_det_precision
+
+
+@numba.njit(inline="always")
+def _normalise_and_estimate(log_weights, weights, particles, out):
+    """Log weights normalised in place, ``weights = exp(log_weights)`` and ``out (n_x,)``
+    the weighted mean of ``particles (n_x, n)``."""
+    total = _logsumexp(log_weights)
+    for i in range(log_weights.shape[0]):
+        log_weights[i] = log_weights[i] - total
+        weights[i] = math.exp(log_weights[i])
+    for k in range(particles.shape[0]):
+        estimate = 0.0
+        for i in range(particles.shape[1]):
+            estimate += weights[i] * particles[k, i]
+        out[k] = estimate
+
+
+@numba.njit(inline="always")
+def _resample(weights, offset, cumulative, particles, out):
+    """``out (n_x, n)``: ``particles`` drawn by systematic resampling with the normalised
+    ``weights (n,)`` and the uniform ``offset`` (NaN weights count as zero; the search
+    of :func:`~kkl_bench.estimators.filters.particle_proposals.systematic_resample`)."""
+    n = weights.shape[0]
+    total = 0.0
     for i in range(n):
-        correction = 0.0
-        for j in range(n_y):
-            correction += gain[i, j] * innovation[j]
-        offset[i] = sample[i] - (mean[i] + correction)
-        offset_sum += offset[i] ** 2
-    projected_sum = 0.0
-    for j in range(n_y):
-        along = 0.0
-        for i in range(n):
-            along += H[j, i] * offset[i]
-        projected_sum += along**2
-    quadratic = offset_sum / q + projected_sum / r
-    return 0.5 * (log_det_precision - quadratic - norm)
+        weight = weights[i]
+        total += 0.0 if math.isnan(weight) else weight
+        cumulative[i] = total
+    cumulative[n - 1] = 1.0
+    ancestor = 0
+    for i in range(n):
+        position = (offset + i) / n
+        while ancestor < n and cumulative[ancestor] <= position:
+            ancestor += 1
+        chosen = min(ancestor, n - 1)
+        for k in range(particles.shape[0]):
+            out[k, i] = particles[k, chosen]
 
 
 @numba.njit(error_model="numpy")  # disk-cached once bound to a model: kernel_cache.bind
-def propagate(
-    drift, output, output_jacobian, sense, sense_slope, constrain, p, q_output, s, g,
-    particles, log_weights, u, dt, y, present, q, components, proposing, law, constants,
-    w, v, uniform, transition,
+def filter_trajectory(
+    drift, output, output_jacobian, sense, sense_slope, constrain, p, q_output, s, g, rng,
+    particles, log_weights, u, dt, y, present, proposing, all_present, q, components,
+    constant_jacobian, law, constants, resample_below, out,
 ):  # fmt: skip
-    """Move every particle one step and update its log weight (the module docstring).
+    """One trajectory through the particle filter (the module docstring).
 
-    A present trajectory, when ``proposing`` (the optimal proposal on a step with some
-    measurement), draws from the proposal; an absent one then moves by the transition
-    with ``transition``'s draws, and without ``proposing`` every trajectory moves by the
-    transition with ``w``'s. The weight gains ``log p(y | x) - log(q(s) / N(s; mean, q I))``
-    where the trajectory is measured. What depends on the sensor's Jacobian ``H`` alone
-    is computed again only when ``H`` changes (never, for a linear sensor).
+    ``particles: (n_x, n)`` and ``log_weights: (n,)`` the first sample's (overwritten);
+    ``u: (steps,)`` the inputs, ``y: (steps, n_y)`` the measurements, read where
+    ``present: (steps,)``; ``proposing: (steps,)`` whether a step draws from the optimal
+    proposal (the optimal proposal, and some trajectory of the batch measured then: the
+    reference engine's draws depend on it) and ``all_present: (steps,)`` whether every
+    trajectory of the batch is measured (else the step also draws a transition for the
+    unmeasured ones); ``components: (c, 2)`` the proposal's Gaussian components
+    ``(weight, variance)`` (one row unless the noise law is a mixture); ``law`` and
+    ``constants`` the noise law (:func:`noise_law_constants`); ``out: (steps, n_x)`` the
+    estimates, NaN-filled by the caller and left NaN from a step whose weights vanished.
 
-    The model's functions sweep over one trajectory's particles at a time (``(n_x, n)``:
-    the transition means, their outputs and Jacobians, the constraint and the moved
-    particles' outputs); the proposal draws and weights go particle by particle."""
-    batch, n_particles, n = particles.shape
-    n_y, count = y.shape[1], components.shape[0]
-    points, means = np.empty((n, n_particles)), np.empty((n, n_particles))
-    moved, work = np.empty((n, n_particles)), np.empty((5, n, n_particles))
+    Each step draws, as the reference engine does: the process draws ``w: (n, n_x)``,
+    then where proposing the measurement draws ``v: (n, n_y)``, the mixture's uniform
+    numbers ``(n,)`` (more than one component) and the transition draws ``(n, n_x)``
+    (not every trajectory measured); after each estimate but the last, one uniform
+    number, the resampling offset. Every operation sweeps over the particles, one
+    array a quantity with the particles on its last axis (as the model's functions do):
+    a particle at a time, the small vectors and matrices of its proposal cost more than
+    its arithmetic.
+    """
+    n, n_particles = particles.shape
+    steps, n_y = y.shape
+    count = components.shape[0]
+    columns = 1 if constant_jacobian else n_particles  # of the proposal's matrices
+    means, moved, spare = (
+        np.empty((n, n_particles)),
+        np.empty((n, n_particles)),
+        np.empty((n, n_particles)),
+    )
+    work = np.empty((5, n, n_particles))
     u_points, log_ratios = np.empty(n_particles), np.empty(n_particles)
+    weights, cumulative = np.empty(n_particles), np.empty(n_particles)
     outputs, slopes = np.empty((n_y, n_particles)), np.empty((n_y, n_particles))
-    jacobians = np.empty((n_y, n, n_particles if proposing else 0))
-    mean, sample, process = np.empty(n), np.empty(n), np.empty(n)
-    H, H_used = np.empty((n_y, n)), np.full((n_y, n), np.nan)
-    innovation = np.empty(n_y)
-    S, inverse = np.empty((count, n_y, n_y)), np.empty((count, n_y, n_y))
-    cholesky_work, gain = np.empty((n_y, n_y)), np.empty((count, n, n_y))
-    log_det, log_det_precision, log_mixture = np.empty(count), np.empty(count), np.empty(count)
-    draws, densities = np.empty((count, n)), np.empty(count)
-    singular = False
+    innovations, residual = np.empty((n_y, n_particles)), np.empty((n_y, n_particles))
+    jacobians = np.empty((n_y, n, columns))
+    w, v, transition = np.empty((n, n_particles)), np.empty((n_y, n_particles)), np.empty((n, n_particles))  # fmt: skip
+    uniform, process, offset = np.empty(n_particles), np.empty((n, n_particles)), np.empty((n, n_particles))  # fmt: skip
+    Hs, H, H_used = np.empty((n_y, n, columns)), np.empty((n_y, n)), np.full((n_y, n), np.nan)
+    gains, inverses = np.empty((count, n, n_y, columns)), np.empty((count, n_y, n_y, columns))
+    log_dets, log_det_precisions = np.empty((count, columns)), np.empty((count, columns))
+    singular = np.zeros(columns, dtype=np.bool_)
+    S, cholesky_work = np.empty((count, n_y, n_y)), np.empty((n_y, n_y))
+    samples = np.empty((count if count > 1 else 0, n, n_particles))
+    log_mixture, densities = np.empty((count, n_particles)), np.empty((count, n_particles))
+    mixture_terms, density = np.empty(count), np.empty(n_particles)
     root_q = math.sqrt(q)
     root_r = np.sqrt(components[:, 1])
     log_component_weights = np.log(components[:, 0])
     n_log_2pi, n_y_log_2pi = n * math.log(2 * math.pi), n_y * math.log(2 * math.pi)
     transition_norm = n * math.log(2 * math.pi * q)
     gaussian_norm = n_y * math.log(2 * math.pi * constants[0]) if law == GAUSSIAN else 0.0
-    for b in range(batch):
-        measured = present[b]
-        drawing = proposing and measured
-        for i in range(n_particles):
-            for k in range(n):
-                points[k, i] = particles[b, i, k]
-        u_points[:] = u[b]
-        rk4_step(drift, p, g, points, u_points, dt, means, work)
-        if drawing:
-            _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means, outputs, slopes, jacobians)  # fmt: skip
-            sensed_output(output, sense, q_output, s, means, outputs)
-        for i in range(n_particles):
-            for k in range(n):
-                mean[k] = means[k, i]
-            log_ratio = 0.0
-            if drawing:
-                changed = False
-                for j in range(n_y):
-                    for k in range(n):
-                        H[j, k] = jacobians[j, k, i]
-                        changed = changed or H[j, k] != H_used[j, k]
-                if changed:
-                    H_used[:, :] = H
-                    singular = not _proposal_covariances(
-                        H, q, components, S, inverse, gain, log_det, log_det_precision,
-                        cholesky_work,
-                    )  # fmt: skip
-                for j in range(n_y):
-                    innovation[j] = y[b, j] - outputs[j, i]
-                if singular:
-                    sample[:] = math.nan
-                elif count == 1:
-                    _draw(mean, H, gain[0], innovation, root_q, root_r[0], w[b, i], v[b, i], sample, process)  # fmt: skip
-                    log_ratio = _proposal_log_density(
-                        sample, mean, gain[0], innovation, H, q, components[0, 1],
-                        log_det_precision[0], n_log_2pi, process,
-                    )  # fmt: skip
+    uniform_log_weight = -math.log(n_particles)
+    for k in range(steps):
+        if k > 0:
+            _fill_normals(rng, w)
+            if proposing[k]:
+                _fill_normals(rng, v)
+                if count > 1:
+                    for i in range(n_particles):
+                        uniform[i] = rng.random()
+                if not all_present[k]:
+                    _fill_normals(rng, transition)
+            u_points[:] = u[k - 1]
+            rk4_step(drift, p, g, particles, u_points, dt, means, work)
+            if proposing[k] and present[k]:
+                if not constant_jacobian:
+                    _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means, outputs, slopes, jacobians)  # fmt: skip
+                elif math.isnan(H_used[0, 0]):  # the one Jacobian, at the first particle
+                    jacobians[:, :, 0] = 0.0
+                    _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means[:, :1], outputs[:, :1], slopes[:, :1], jacobians[:, :, :1])  # fmt: skip
+                for i in range(columns):  # a new Jacobian: its proposal's matrices
+                    changed = False
+                    for a in range(n_y):
+                        for j in range(n):
+                            H[a, j] = jacobians[a, j, i]
+                            changed = changed or H[a, j] != H_used[a, j]
+                    if changed:
+                        H_used[:, :] = H
+                        _store_covariances(H, q, components, i, Hs, gains, inverses, log_dets, log_det_precisions, singular, S, cholesky_work)  # fmt: skip
+                    elif not constant_jacobian:
+                        Hs[:, :, i] = Hs[:, :, i - 1]
+                        gains[:, :, :, i] = gains[:, :, :, i - 1]
+                        inverses[:, :, :, i] = inverses[:, :, :, i - 1]
+                        log_dets[:, i] = log_dets[:, i - 1]
+                        log_det_precisions[:, i] = log_det_precisions[:, i - 1]
+                        singular[i] = singular[i - 1]
+                sensed_output(output, sense, q_output, s, means, outputs)
+                for a in range(n_y):
+                    for i in range(n_particles):
+                        innovations[a, i] = y[k, a] - outputs[a, i]
+                for j in range(n):
+                    for i in range(n_particles):
+                        process[j, i] = root_q * w[j, i]
+                if count == 1:
+                    _component_sample(0, process, innovations, v, means, Hs, gains, root_r[0], moved, residual)  # fmt: skip
+                    _component_log_density(0, moved, means, innovations, Hs, gains, q, components[0, 1], log_det_precisions, n_log_2pi, offset, log_ratios)  # fmt: skip
                 else:
-                    for c in range(count):  # log weight times N(e; 0, S_c)
-                        quadratic = 0.0
-                        for j in range(n_y):
-                            for m in range(n_y):
-                                quadratic += innovation[j] * inverse[c, j, m] * innovation[m]
-                        log_mixture[c] = log_component_weights[c] - 0.5 * (
-                            quadratic + log_det[c] + n_y_log_2pi
-                        )
-                    normaliser = _logsumexp(log_mixture)
-                    chosen, cumulative = 0, 0.0
+                    for c in range(count):  # each component's weight times N(e; 0, S_c)
+                        _component_sample(c, process, innovations, v, means, Hs, gains, root_r[c], samples[c], residual)  # fmt: skip
+                        for i in range(n_particles):
+                            column = i if columns > 1 else 0
+                            quadratic = 0.0
+                            for a in range(n_y):
+                                for b in range(n_y):
+                                    quadratic += innovations[a, i] * inverses[c, a, b, column] * innovations[b, i]  # fmt: skip
+                            log_mixture[c, i] = log_component_weights[c] - 0.5 * (
+                                quadratic + log_dets[c, column] + n_y_log_2pi
+                            )
+                    for i in range(n_particles):  # normalised; the uniform picks one
+                        for c in range(count):
+                            mixture_terms[c] = log_mixture[c, i]
+                        normaliser = _logsumexp(mixture_terms)
+                        chosen, total = 0, 0.0
+                        for c in range(count):
+                            log_mixture[c, i] = log_mixture[c, i] - normaliser
+                            total += math.exp(log_mixture[c, i])
+                            if uniform[i] > total:
+                                chosen += 1
+                        chosen = min(chosen, count - 1)
+                        for j in range(n):
+                            moved[j, i] = samples[chosen, j, i]
                     for c in range(count):
-                        log_mixture[c] = log_mixture[c] - normaliser
-                        cumulative += math.exp(log_mixture[c])
-                        if uniform[b, i] > cumulative:
-                            chosen += 1
-                    chosen = min(chosen, count - 1)
-                    for c in range(count):
-                        _draw(mean, H, gain[c], innovation, root_q, root_r[c], w[b, i], v[b, i], draws[c], process)  # fmt: skip
-                    sample[:] = draws[chosen]
-                    for c in range(count):
-                        densities[c] = log_mixture[c] + _proposal_log_density(
-                            sample, mean, gain[c], innovation, H, q, components[c, 1],
-                            log_det_precision[c], n_log_2pi, process,
-                        )  # fmt: skip
-                    log_ratio = _logsumexp(densities)
-                transition_sum = 0.0
-                for k in range(n):
-                    transition_sum += (sample[k] - mean[k]) ** 2
-                log_ratio = log_ratio - (-0.5 * (transition_sum / q + transition_norm))
+                        _component_log_density(c, moved, means, innovations, Hs, gains, q, components[c, 1], log_det_precisions, n_log_2pi, offset, density)  # fmt: skip
+                        for i in range(n_particles):
+                            densities[c, i] = log_mixture[c, i] + density[i]
+                    for i in range(n_particles):
+                        for c in range(count):
+                            mixture_terms[c] = densities[c, i]
+                        log_ratios[i] = _logsumexp(mixture_terms)
+                for i in range(n_particles):
+                    if singular[i if columns > 1 else 0]:
+                        for j in range(n):
+                            moved[j, i] = math.nan
+                    transition_sum = 0.0
+                    for j in range(n):
+                        transition_sum += (moved[j, i] - means[j, i]) ** 2
+                    log_ratios[i] = log_ratios[i] - (-0.5 * (transition_sum / q + transition_norm))
             else:
-                noise = transition[b, i] if proposing else w[b, i]
-                for k in range(n):
-                    sample[k] = mean[k] + root_q * noise[k]
-            for k in range(n):
-                moved[k, i] = sample[k]
-            log_ratios[i] = log_ratio
-        constrain(moved, p)
-        for i in range(n_particles):
-            for k in range(n):
-                particles[b, i, k] = moved[k, i]
-        if measured:
-            sensed_output(output, sense, q_output, s, moved, outputs)
+                noise = transition if proposing[k] else w
+                for j in range(n):
+                    for i in range(n_particles):
+                        moved[j, i] = means[j, i] + root_q * noise[j, i]
+                log_ratios[:] = 0.0
+            constrain(moved, p)
+            particles, moved = moved, particles
+            if present[k]:
+                sensed_output(output, sense, q_output, s, particles, outputs)
+                log_likelihoods(y[k], outputs, law, constants, gaussian_norm, density)
+                for i in range(n_particles):
+                    log_weights[i] = log_weights[i] + density[i] - log_ratios[i]
+        _normalise_and_estimate(log_weights, weights, particles, out[k])
+        stopped = False
+        for j in range(n):
+            stopped = stopped or math.isnan(out[k, j])
+        if stopped:  # every weight vanished: NaN from here on
+            out[k:, :] = math.nan
+            return
+        if k + 1 < steps:
+            squares = 0.0
             for i in range(n_particles):
-                for j in range(n_y):
-                    innovation[j] = y[b, j] - outputs[j, i]
-                likelihood = log_likelihood(innovation, law, constants, gaussian_norm)
-                log_weights[b, i] = log_weights[b, i] + likelihood - log_ratios[i]
+                squares += weights[i] ** 2
+            offset_draw = rng.random()
+            if 1.0 / squares < resample_below * n_particles:
+                _resample(weights, offset_draw, cumulative, particles, spare)
+                particles, spare = spare, particles
+                log_weights[:] = uniform_log_weight

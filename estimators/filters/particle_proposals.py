@@ -16,14 +16,15 @@ def systematic_resample(weights: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     ``weights: (batch, n)`` normalised rows, ``offsets: (batch,)`` uniform in [0, 1)
     -> ``(batch, n)`` integer indices into each row.
     """
-    batch, n = weights.shape
-    rows = np.arange(batch)[:, None]
+    n = weights.shape[1]
     cumulative = np.cumsum(weights, axis=1)
     cumulative[:, -1] = 1.0
     positions = (offsets[:, None] + np.arange(n)) / n
-    # one search over all rows: row b lives in [b, b + 1]
-    flat = np.searchsorted((cumulative + rows).ravel(), (positions + rows).ravel(), side="right")
-    return np.minimum(flat.reshape(batch, n) - rows * n, n - 1)
+    # row by row, so that a trajectory's ancestors do not depend on the other rows
+    ancestors = [
+        np.searchsorted(c, x, side="right") for c, x in zip(cumulative, positions, strict=True)
+    ]
+    return np.minimum(np.array(ancestors, dtype=np.int64).reshape(weights.shape), n - 1)
 
 
 def gaussian_log_density(residual: np.ndarray, variance: float) -> np.ndarray:

@@ -37,6 +37,7 @@ import time
 from collections.abc import Callable, Hashable
 from pathlib import Path
 
+import numba
 import numpy as np
 import pandas as pd
 import torch
@@ -79,17 +80,32 @@ COLUMNS = [
     "peak_gflops",
     "floor_us_per_trajectory_step",
     "over_floor",
+    "normals_per_trajectory_step",
+    "uniforms_per_trajectory_step",
+    "transcendentals_per_trajectory_step",
+    "normal_ns",
+    "uniform_ns",
+    "transcendental_ns",
 ]
 """``run`` numbers the measurements merged into one file (1, 2, ...); the reference
 column is :data:`REFERENCE`'s cost on the same test set in the same run. ``engine`` is
 the engine timed (``compiled`` or ``reference`` for a model-based row with engines,
 ``numpy`` for one without, ``torch`` for a network), and
 ``reference_engine_us_per_trajectory_step`` the reference engine's cost beside a
-compiled one. ``floor = flops / peak`` at the measured ``peak_gflops`` in the row's
-``precision``; ``over_floor`` is the cost over it."""
+compiled one. ``floor = flops / peak + normals normal_ns + uniforms uniform_ns +
+transcendentals transcendental_ns``, at the measured ``peak_gflops`` in the row's
+``precision`` and the measured cost of one operation of each kind
+(:func:`operation_ns`); ``over_floor`` is the cost over it. The counts are the row's own
+(``operations_per_step()``; zero for a row that declares none)."""
 
 ARITHMETIC = COLUMNS[COLUMNS.index("engine") :]
-"""The columns measured since engines and floors were (issue 41)."""
+"""The columns measured since engines and floors were (issue 41; the operation counts
+and costs since issue 65)."""
+OPERATIONS = ("normal", "uniform", "transcendental")
+"""What a floor counts besides flops: standard normal and uniform draws and
+transcendental functions (:func:`operation_ns`)."""
+OPERATION_SIZE = 2**16
+"""Operations of each kind per timed call of :func:`operation_ns`."""
 ENGINES = ("compiled", "reference")
 """A model-based row with an ``engine`` hyperparameter is timed on both."""
 PEAK_SIZE = 1024
@@ -167,6 +183,64 @@ def peak_gflops(precision: str, threads: int = 1, rounds: int = 5) -> float:
             multiply(a, b)
             best = min(best, time.perf_counter() - start)
     return 2 * PEAK_SIZE**3 / best / 1e9
+
+
+@numba.njit(cache=True)
+def _draw_normals(rng, out):
+    for i in range(out.shape[0]):
+        out[i] = rng.standard_normal()
+
+
+@numba.njit(cache=True)
+def _draw_uniforms(rng, out):
+    for i in range(out.shape[0]):
+        out[i] = rng.random()
+
+
+@numba.njit(cache=True)
+def _exponentials(values, out):
+    for i in range(values.shape[0]):
+        out[i] = math.exp(values[i])
+
+
+def operation_ns(rounds: int = 5) -> dict[str, float]:
+    """This machine's cost, ns, of one operation of each of :data:`OPERATIONS`, the best
+    of ``rounds`` calls of :data:`OPERATION_SIZE` each, as the compiled filters run them:
+    a standard normal and a uniform number drawn inside a numba loop from a
+    ``numpy.random.Generator`` (numpy's algorithms on PCG64, what the particle filter's
+    and the EnKF's kernels draw), and ``math.exp`` of an array in a numba loop (the
+    transcendental a particle's weight needs)."""
+    rng = np.random.default_rng(0)
+    values, out = rng.uniform(-5.0, 0.0, OPERATION_SIZE), np.empty(OPERATION_SIZE)
+    calls = {
+        "normal": lambda: _draw_normals(rng, out),
+        "uniform": lambda: _draw_uniforms(rng, out),
+        "transcendental": lambda: _exponentials(values, out),
+    }
+    costs = {}
+    for kind, call in calls.items():
+        best = math.inf
+        for _ in range(rounds + 1):  # the first compiles or loads, and warms up
+            start = time.perf_counter()
+            call()
+            best = min(best, time.perf_counter() - start)
+        costs[kind] = 1e9 * best / OPERATION_SIZE
+    return costs
+
+
+def counted_operations(estimator) -> dict[str, float]:
+    """``{kind: count}`` of :data:`OPERATIONS` one trajectory-step of a fitted estimator
+    must do besides its flops: its own ``operations_per_step()``, zero where it declares
+    none."""
+    declared = getattr(estimator, "operations_per_step", None)
+    counts = declared() if declared is not None else {}
+    return {kind: float(counts.get(kind, 0)) for kind in OPERATIONS}
+
+
+def floor_us(flops_count: float, peak: float, counts: dict, unit_ns: dict) -> float:
+    """A row's floor, µs per trajectory-step: ``flops_count`` at ``peak`` GFLOP/s plus the
+    ``counts`` of :data:`OPERATIONS` at their costs ``unit_ns``."""
+    return flops_count / (peak * 1e3) + sum(counts[k] * unit_ns[k] for k in OPERATIONS) / 1e3
 
 
 def counted_flops(estimator, data) -> tuple[float, str]:
@@ -253,6 +327,8 @@ def measure(
         precision: peak_gflops(precision, threads)
         for precision in sorted({precision for _, precision in arithmetic.values()})
     }
+    with thread_limit(threads):
+        unit_ns = operation_ns()
 
     def rows(best: dict, counts: dict) -> pd.DataFrame:
         measured = []
@@ -261,7 +337,8 @@ def measure(
                 continue
             data = test_sets[task]
             arithmetic_flops, precision = arithmetic[name, task]
-            floor = arithmetic_flops / (peaks[precision] * 1e3)  # µs per trajectory-step
+            operations = counted_operations(fitted[name, row_engine[name], task.system])
+            floor = floor_us(arithmetic_flops, peaks[precision], operations, unit_ns)
             cost = _per_step(seconds, data)
             reference_engine = best.get((name, "reference", task), math.nan)
             measured.append(
@@ -290,6 +367,8 @@ def measure(
                     "peak_gflops": peaks[precision],
                     "floor_us_per_trajectory_step": floor,
                     "over_floor": cost / floor,
+                    **{f"{kind}s_per_trajectory_step": operations[kind] for kind in OPERATIONS},
+                    **{f"{kind}_ns": unit_ns[kind] for kind in OPERATIONS},
                 }
             )
         return pd.DataFrame(measured, columns=COLUMNS)

@@ -173,4 +173,10 @@ class SensedSystem(ReadThrough):
         if model is None or sensor is None:
             return None
         sense, sense_slope, s = sensor
-        return dataclasses.replace(model, sense=sense, sense_slope=sense_slope, s=s)
+        return dataclasses.replace(
+            model,
+            sense=sense,
+            sense_slope=sense_slope,
+            s=s,
+            constant_output_jacobian=model.constant_output_jacobian and self.sensor.constant_slope,
+        )

@@ -34,10 +34,12 @@ class Sensor(ABC):
     reads_as_noise: whether a Gaussian filter may leave the sensor out of its model and
         read what it loses as additive noise of ``added_variance`` (the classical model of
         quantization; :func:`filter_system`).
+    constant_slope: whether :meth:`slope` is the same at every output.
     """
 
     name: ClassVar[str]
     reads_as_noise: ClassVar[bool] = False
+    constant_slope: ClassVar[bool] = False
 
     @abstractmethod
     def __call__(self, output):
@@ -68,6 +70,7 @@ class Identity(Sensor):
     """The system's own output: ``s(h) = h``."""
 
     name: ClassVar[str] = "identity"
+    constant_slope: ClassVar[bool] = True
 
     def __call__(self, output):
         return output
@@ -127,6 +130,7 @@ class Quantized(Sensor):
 
     name: ClassVar[str] = "quantized"
     reads_as_noise: ClassVar[bool] = True
+    constant_slope: ClassVar[bool] = True
     step: float = 0.1
 
     def __post_init__(self) -> None:

@@ -53,6 +53,9 @@ class CompiledModel:
     drift_flops, jacobian_flops: floating-point operations of one ``drift`` and one
         ``drift_jacobian`` call (counted from the expressions; what cost floors use).
     jacobian_nonzeros: entries of ``df/dx`` that can be nonzero (``n_x^2`` when dense).
+    constant_output_jacobian: whether the Jacobian of ``s(h(x))`` is the same at every
+        point (a linear output through a sensor of constant slope): the particle filter
+        then evaluates it once.
     """
 
     drift: Any
@@ -70,6 +73,7 @@ class CompiledModel:
     drift_flops: int
     jacobian_flops: int
     jacobian_nonzeros: int
+    constant_output_jacobian: bool = False
 
     @property
     def n_x(self) -> int:
@@ -124,6 +128,7 @@ def measured_states(
         s=np.zeros(0),
         g=np.ascontiguousarray(g, dtype=np.float64),
         n_y=q.shape[0],
+        constant_output_jacobian=True,
         **counts,
     )
 
