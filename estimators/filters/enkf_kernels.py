@@ -45,12 +45,13 @@ def _mean_over_members(values, row, out, at):
 
 
 @numba.njit(inline="always", error_model="numpy")
-def _analyse(predicted, precision_weights, innovation, anomalies, mean, first, states, out, weights, scratch):  # fmt: skip
-    """``out[first:first + states, :] (k, N)``: the ETKF analysis members ``x_bar + (w_bar
-    + W_a[i]) A`` (``estimators/filters/enkf.py``) of the states ``first..first + k`` with
-    forecast ``mean (n_x,)`` and ``anomalies (n_x, N)``, from the output anomalies
-    ``predicted (m, N)`` (``Y_b``), the precision of each output ``precision_weights
-    (m,)`` (``R^-1``'s diagonal) and the ``innovation (m,)``.
+def _analyse(predicted, precision_weights, innovation, ensemble, mean, first, states, weights, scratch):  # fmt: skip
+    """The states ``first..first + k`` of the members ``ensemble (n_x, N)``, whose mean is
+    ``mean (n_x,)``, replaced by the ETKF analysis members ``x_bar + (w_bar + W_a[i]) A``
+    (``estimators/filters/enkf.py``; ``A`` the members' anomalies) and their ``mean`` by the
+    analysis members' mean, from the output anomalies ``predicted (m, N)`` (``Y_b``), the
+    precision of each output ``precision_weights (m,)`` (``R^-1``'s diagonal) and the
+    ``innovation (m,)``.
 
     With fewer outputs than members the ``N x N`` matrix ``(N - 1) I + B B^T`` (``B =
     Y_b^T R^-1/2``) is a rank-``m`` update of a multiple of the identity, so its inverse and
@@ -64,14 +65,28 @@ def _analyse(predicted, precision_weights, innovation, anomalies, mean, first, s
     of ``scratch`` (:func:`scratch_for`); with as many outputs as members or more, that
     eigendecomposition (:func:`_analyse_full`)."""
     outputs, members = predicted.shape
-    if outputs >= members:
-        _analyse_full(predicted, precision_weights, innovation, anomalies, mean, first, states, out)  # fmt: skip
-        return
     if outputs == 1:
-        _analyse_one_output(predicted, precision_weights[0], innovation[0], anomalies, mean, first, states, out, weights)  # fmt: skip
+        _analyse_one_output(predicted, precision_weights[0], innovation[0], ensemble, mean, first, states, weights)  # fmt: skip
         return
+    anomalies = scratch[0]
+    for s in range(first, first + states):
+        for i in range(members):
+            anomalies[s, i] = ensemble[s, i] - mean[s]
+    if outputs >= members:
+        _analyse_full(predicted, precision_weights, innovation, anomalies, mean, first, states, ensemble)  # fmt: skip
+    else:
+        _analyse_low_rank(predicted, precision_weights, innovation, anomalies, mean, first, states, ensemble, weights, scratch)  # fmt: skip
+    for s in range(first, first + states):
+        _mean_over_members(ensemble, s, mean, s)
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _analyse_low_rank(predicted, precision_weights, innovation, anomalies, mean, first, states, out, weights, scratch):  # fmt: skip
+    """:func:`_analyse` with more than one output, fewer than the members, into ``out``
+    from the ``anomalies (n_x, N)``."""
+    outputs, members = predicted.shape
     a = members - 1.0
-    projected, b, e, gram, values, along, shrink, shift, projected_anomalies = scratch
+    _, projected, b, e, gram, values, along, shrink, shift, projected_anomalies = scratch
     for j in range(members):  # C (y - y_bar), C^T = Y_b^T R^-1; B = Y_b^T R^-1/2
         total = 0.0
         for k in range(outputs):
@@ -126,11 +141,12 @@ def _analyse(predicted, precision_weights, innovation, anomalies, mean, first, s
 
 
 @numba.njit(inline="always", error_model="numpy")
-def _analyse_one_output(predicted, weight, innovation, anomalies, mean, first, states, out, weights):  # fmt: skip
+def _analyse_one_output(predicted, weight, innovation, ensemble, mean, first, states, weights):  # fmt: skip
     """:func:`_analyse` for one output, in scalars: ``B^T B`` is the number ``l`` and ``E =
-    B``, the same operations as the general path's with ``m = 1``, each member's ``B`` and
-    ``C (y - y_bar)`` recomputed where used rather than stored (a loop over one output
-    inside every loop over the members, and the stores, cost more than the analysis)."""
+    B``, the same operations as the general path's with ``m = 1``, each member's ``B``,
+    ``C (y - y_bar)`` and anomaly recomputed where used rather than stored (a loop over one
+    output inside every loop over the members, and the stores, cost more than the
+    analysis)."""
     members = predicted.shape[1]
     a = members - 1.0
     root = math.sqrt(weight)
@@ -144,15 +160,19 @@ def _analyse_one_output(predicted, weight, innovation, anomalies, mean, first, s
     shrink = -1.0 / (total * (math.sqrt(a) + total))
     for j in range(members):
         weights[j] = (predicted[0, j] * weight * innovation - predicted[0, j] * root * along) / a
-    for s in range(states):
-        row = first + s
-        shift, projected_anomaly = mean[row], 0.0
+    for s in range(first, first + states):
+        shift, projected_anomaly = mean[s], 0.0
         for j in range(members):
-            shift += weights[j] * anomalies[row, j]
-            projected_anomaly += predicted[0, j] * root * anomalies[row, j]
+            anomaly = ensemble[s, j] - mean[s]
+            shift += weights[j] * anomaly
+            projected_anomaly += predicted[0, j] * root * anomaly
         projected_anomaly = projected_anomaly * shrink
+        total = 0.0
         for i in range(members):
-            out[row, i] = shift + anomalies[row, i] + predicted[0, i] * root * projected_anomaly
+            value = shift + (ensemble[s, i] - mean[s]) + predicted[0, i] * root * projected_anomaly
+            ensemble[s, i] = value
+            total += value
+        mean[s] = total / members
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -190,10 +210,12 @@ def _analyse_full(predicted, precision_weights, innovation, anomalies, mean, fir
 
 
 @numba.njit(cache=True)
-def scratch_for(members, outputs, states):
+def scratch_for(members, outputs, states, states_total):
     """The arrays :func:`_analyse` works in for ``members`` members and up to ``outputs``
-    outputs (more than one) and ``states`` states, ``weights`` aside."""
+    outputs (more than one), ``states`` states analysed together of ``states_total``,
+    ``weights`` aside."""
     return (
+        np.empty((states_total, members)),
         np.empty(members),
         np.empty((outputs, members)),
         np.empty((outputs, members)),
@@ -229,7 +251,6 @@ def etkf(
         for j in range(n):
             ensemble[j, i] = low[j] + (high[j] - low[j]) * rng.random()
     outputs, work, u_members = np.empty((n_y, members)), np.empty((5, n, members)), np.empty(members)  # fmt: skip
-    anomalies = np.empty((n, members))
     mean, predicted_mean, innovation = np.empty(n), np.empty(n_y), np.empty(n_y)
     precisions = np.full(n_y, 1.0 / r)  # R^-1 of the global analysis
     member_weights = np.empty(members)
@@ -237,7 +258,7 @@ def etkf(
     local_outputs = near.shape[1] if sites else n_y
     local_y, local_weights = np.empty((local_outputs, members)), np.empty(local_outputs)
     local_innovation = np.empty(local_outputs)
-    scratch = scratch_for(members, local_outputs, per_site)
+    scratch = scratch_for(members, local_outputs, per_site, n)
     for k in range(steps):
         if k > 0:
             u_members[:] = u[k - 1]
@@ -263,16 +284,13 @@ def etkf(
             check += y[k, j] - y[k, j]
         if check == 0.0:  # every member finite, and the sample measured
             sensed_output(output, sense, q, s, ensemble, outputs)
-            for j in range(n):
-                for i in range(members):
-                    anomalies[j, i] = ensemble[j, i] - mean[j]
             for j in range(n_y):
                 _mean_over_members(outputs, j, predicted_mean, j)
                 for i in range(members):
                     outputs[j, i] = outputs[j, i] - predicted_mean[j]
                 innovation[j] = y[k, j] - predicted_mean[j]
             if sites == 0:
-                _analyse(outputs, precisions, innovation, anomalies, mean, 0, n, ensemble, member_weights, scratch)  # fmt: skip
+                _analyse(outputs, precisions, innovation, ensemble, mean, 0, n, member_weights, scratch)  # fmt: skip
             else:
                 for site in range(sites):
                     for c in range(local_outputs):
@@ -282,11 +300,10 @@ def etkf(
                         for i in range(members):
                             local_y[c, i] = outputs[output_index, i]
                     _analyse(
-                        local_y, local_weights, local_innovation, anomalies, mean,
-                        site * per_site, per_site, ensemble, member_weights, scratch,
+                        local_y, local_weights, local_innovation, ensemble, mean,
+                        site * per_site, per_site, member_weights, scratch,
                     )  # fmt: skip
             for j in range(n):  # the inflation, and the estimate: the members' mean
-                _mean_over_members(ensemble, j, mean, j)
                 total = 0.0
                 for i in range(members):
                     value = mean[j] + inflation * (ensemble[j, i] - mean[j])
