@@ -366,7 +366,7 @@ def cost_finding(costs: pd.DataFrame) -> str:
             f"{group['over_ekf'].min():.3g} (`{cheapest}`) to {group['over_ekf'].max():.3g} "
             f"(`{dearest}`) times the EKF's per trajectory-step (mean over systems)"
             + (
-                f" and run at {floor.min():.3g} to {floor.max():.3g} times their arithmetic floor"
+                f" and run at {floor.min():.3g} to {floor.max():.3g} times their floor"
                 if len(floor)
                 else " (their flops are not counted yet)"
             )
@@ -384,7 +384,8 @@ def cost_section(board: Board) -> Section:
                 "largest cell, and the EKF's cost over each row's. "
                 + cost_finding(board.costs)
                 + "A row's floor is its flops per trajectory-step at this machine's peak in "
-                "its precision, measured in the same run (protocol 6.3):"
+                "its precision, plus the random numbers and transcendental functions it must "
+                "compute at their cost, all measured in the same run (protocol 6.3):"
             ),
             measured_cost_table(board.costs),
         ]
