@@ -35,13 +35,13 @@ from kkl_bench.protocol.compiled import rk4_step, sensed_output
 
 
 @numba.njit(inline="always", error_model="numpy")
-def _mean_over_members(values, row, out, at):
-    """``out[at] =`` the mean of ``values[row, :]`` over the members, summed in order (the
+def _mean_over_members(values, row, out):
+    """``out[row] =`` the mean of ``values[row, :]`` over the members, summed in order (the
     reference's ``mean(axis=1)`` of its ``(N, k)`` members, row by row)."""
     total = values[row, 0]
     for i in range(1, values.shape[1]):
         total += values[row, i]
-    out[at] = total / values.shape[1]
+    out[row] = total / values.shape[1]
 
 
 @numba.njit(inline="always", error_model="numpy")
@@ -77,7 +77,7 @@ def _analyse(predicted, precision_weights, innovation, ensemble, mean, first, st
     else:
         _analyse_low_rank(predicted, precision_weights, innovation, anomalies, mean, first, states, ensemble, weights, scratch)  # fmt: skip
     for s in range(first, first + states):
-        _mean_over_members(ensemble, s, mean, s)
+        _mean_over_members(ensemble, s, mean)
 
 
 @numba.njit(inline="always", error_model="numpy")
@@ -86,7 +86,7 @@ def _analyse_low_rank(predicted, precision_weights, innovation, anomalies, mean,
     from the ``anomalies (n_x, N)``."""
     outputs, members = predicted.shape
     a = members - 1.0
-    _, projected, b, e, gram, values, along, shrink, shift, projected_anomalies = scratch
+    _, projected, b, e, gram, along, shrink, shift, projected_anomalies = scratch
     for j in range(members):  # C (y - y_bar), C^T = Y_b^T R^-1; B = Y_b^T R^-1/2
         total = 0.0
         for k in range(outputs):
@@ -102,9 +102,8 @@ def _analyse_low_rank(predicted, precision_weights, innovation, anomalies, mean,
             for j in range(members):
                 total += b[k, j] * b[m, j]
             gram[k, m] = total
-    eigenvalues, rotation = np.linalg.eigh(gram)
+    values, rotation = np.linalg.eigh(gram)
     for k in range(outputs):
-        values[k] = eigenvalues[k]
         for j in range(members):
             total = 0.0
             for m in range(outputs):
@@ -222,7 +221,6 @@ def scratch_for(members, outputs, states, states_total):
         np.empty((outputs, outputs)),
         np.empty(outputs),
         np.empty(outputs),
-        np.empty(outputs),
         np.empty(states),
         np.empty((outputs, states)),
     )
@@ -285,7 +283,7 @@ def etkf(
         if check == 0.0:  # every member finite, and the sample measured
             sensed_output(output, sense, q, s, ensemble, outputs)
             for j in range(n_y):
-                _mean_over_members(outputs, j, predicted_mean, j)
+                _mean_over_members(outputs, j, predicted_mean)
                 for i in range(members):
                     outputs[j, i] = outputs[j, i] - predicted_mean[j]
                 innovation[j] = y[k, j] - predicted_mean[j]

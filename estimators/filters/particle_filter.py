@@ -242,6 +242,7 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
         batch, steps, _ = y.shape
         present = np.isfinite(y).all(axis=-1)  # (batch, steps)
         proposing = np.full(steps, self.proposal == "optimal") & present.any(axis=0)
+        all_present = present.all(axis=0)
         components = np.array(mixture or ((1.0, measurement.variance),), dtype=np.float64)
         law, constants = particle_kernels.noise_law_constants(measurement.noise)
         y, u = self.kernel_inputs(y, u)
@@ -255,7 +256,7 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
                 model.p, model.q, model.s, model.g, rng,
                 np.ascontiguousarray(particles[b].T, dtype=np.float64),
                 np.ascontiguousarray(log_weights[b], dtype=np.float64), u[b], dt, y[b],
-                present[b], proposing, present.all(axis=0), float(context.sigma_w**2),
+                present[b], proposing, all_present, float(context.sigma_w**2),
                 components, model.constant_output_jacobian, law, constants,
                 float(self.resample_below), x_hat[b],
             )  # fmt: skip

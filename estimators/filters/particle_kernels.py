@@ -212,17 +212,11 @@ def _store_covariances(H, q, components, column, Hs, gains, inverses, log_dets, 
     """Component by component, what the proposal takes from the Jacobian ``H (n_y, n_x)``
     alone (:func:`_proposal_covariances`) into column ``column`` of ``Hs``, ``gains``,
     ``inverses``, ``log_dets``, ``log_det_precisions`` and ``singular``."""
-    count, n, n_y = gains.shape[0], H.shape[1], H.shape[0]
-    gain, inverse = np.empty((count, n, n_y)), np.empty((count, n_y, n_y))
-    log_det, log_det_precision = np.empty(count), np.empty(count)
     singular[column] = not _proposal_covariances(
-        H, q, components, S, inverse, gain, log_det, log_det_precision, work
-    )
+        H, q, components, S, inverses[:, :, :, column], gains[:, :, :, column],
+        log_dets[:, column], log_det_precisions[:, column], work,
+    )  # fmt: skip
     Hs[:, :, column] = H
-    gains[:, :, :, column] = gain
-    inverses[:, :, :, column] = inverse
-    log_dets[:, column] = log_det
-    log_det_precisions[:, column] = log_det_precision
 
 
 @numba.njit(inline="always")
@@ -338,7 +332,6 @@ def filter_trajectory(
                 if not constant_jacobian:
                     _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means, outputs, slopes, jacobians)  # fmt: skip
                 elif math.isnan(H_used[0, 0]):  # the one Jacobian, at the first particle
-                    jacobians[:, :, 0] = 0.0
                     _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means[:, :1], outputs[:, :1], slopes[:, :1], jacobians[:, :, :1])  # fmt: skip
                 for i in range(columns):  # a new Jacobian: its proposal's matrices
                     changed = False

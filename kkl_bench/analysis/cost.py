@@ -323,6 +323,11 @@ def measure(
         for name in tqdm(spec.estimators, desc="counting flops", unit="row")
         for task in test_sets
     }
+    operations = {
+        (name, task): counted_operations(fitted[name, row_engine[name], task.system])
+        for name in spec.estimators
+        for task in test_sets
+    }
     peaks = {
         precision: peak_gflops(precision, threads)
         for precision in sorted({precision for _, precision in arithmetic.values()})
@@ -337,8 +342,8 @@ def measure(
                 continue
             data = test_sets[task]
             arithmetic_flops, precision = arithmetic[name, task]
-            operations = counted_operations(fitted[name, row_engine[name], task.system])
-            floor = floor_us(arithmetic_flops, peaks[precision], operations, unit_ns)
+            operation_counts = operations[name, task]
+            floor = floor_us(arithmetic_flops, peaks[precision], operation_counts, unit_ns)
             cost = _per_step(seconds, data)
             reference_engine = best.get((name, "reference", task), math.nan)
             measured.append(
@@ -367,7 +372,10 @@ def measure(
                     "peak_gflops": peaks[precision],
                     "floor_us_per_trajectory_step": floor,
                     "over_floor": cost / floor,
-                    **{f"{kind}s_per_trajectory_step": operations[kind] for kind in OPERATIONS},
+                    **{
+                        f"{kind}s_per_trajectory_step": operation_counts[kind]
+                        for kind in OPERATIONS
+                    },
                     **{f"{kind}_ns": unit_ns[kind] for kind in OPERATIONS},
                 }
             )
