@@ -2,6 +2,8 @@
 interrupted and resumed that makes each cell once."""
 
 import json
+import subprocess
+import sys
 
 import pandas as pd
 import pytest
@@ -101,3 +103,57 @@ def test_regenerate_refuses_its_source_as_target_and_unknown_names(published, ca
     assert "is the source folder" in capsys.readouterr().err
     assert main([*base, "--into", "elsewhere", "--estimator", "enkf", "--dry-run"]) == 2
     assert "hold no estimator 'enkf'; valid: ekf, ukf" in capsys.readouterr().err
+
+
+METER_CHILD = """
+import sys, time
+from kkl_bench.run.ledger import metered
+with metered(sys.argv[1], sys.argv[2], every_s=0.02):
+    end = time.process_time() + 0.3
+    while time.process_time() < end:  # spend processor time, then say so
+        pass
+    time.sleep(0.1)  # a meter write after the spending
+    print("spent", flush=True)
+    time.sleep(60)
+"""
+
+
+def _metered_child(folder, key):
+    """A process that spends 0.3 s of processor time under a meter of ``key``, says so, and
+    waits to be killed."""
+    child = subprocess.Popen(
+        [sys.executable, "-c", METER_CHILD, str(folder), key], stdout=subprocess.PIPE, text=True
+    )
+    assert child.stdout.readline() == "spent\n"
+    return child
+
+
+def test_a_killed_job_s_meter_counts_once_and_a_live_one_is_left(tmp_path):
+    key = "kalmannet duffing seed0 [duffing/zero@v1]"
+    live = _metered_child(tmp_path, key)
+    try:
+        assert ledger.interrupted_times(tmp_path, key) == {"seconds": 0.0, "wall_seconds": 0.0}
+        killed = _metered_child(tmp_path, key)
+        killed.kill()
+        killed.wait()
+        spent = ledger.interrupted_times(tmp_path, key)
+        assert 0.3 <= spent["seconds"] < 1.0 and spent["wall_seconds"] >= 0.4
+        assert ledger.interrupted_times(tmp_path, key)["seconds"] == 0.0  # counted once
+        assert len(list(tmp_path.glob(f"{ledger.METER_FOLDER}/*/*.json"))) == 1  # the live one
+    finally:
+        live.kill()
+        live.wait()
+
+
+def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, tmp_path):
+    into = tmp_path / "into"
+    planned = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
+    first = planned.jobs[0].key
+    meters = ledger._meter_folder(into, first)
+    meters.mkdir(parents=True)  # what a killed attempt of the first job left
+    (meters / "elsewhere-1-1.json").write_text('{"seconds": 1000.0, "wall_seconds": 2000.0}')
+    jobs = regenerate.run(planned, into)["jobs"]
+    assert 1000 < jobs[first]["seconds"] < 1100 and 2000 < jobs[first]["wall_seconds"] < 2100
+    other = planned.jobs[1].key
+    assert jobs[other]["seconds"] < 100
+    assert not list(meters.iterdir())

@@ -1,19 +1,37 @@
 """The ledger a regeneration (:mod:`kkl_bench.run.regenerate`) keeps beside the results it
 writes: each finished fit's measured processor time (its core-seconds, one thread a
 fit) and wall time, so that the core-hours of a board are read from what ran, across
-interrupted and resumed invocations."""
+interrupted and resumed invocations.
+
+A job killed mid-training (a stopped session, a lost machine) resumes from its
+checkpoint in a later invocation, and the time it spent before the kill counts too: a
+running job keeps a *meter*, a file of its own under ``<folder>/.meters/`` that it
+rewrites every :data:`METER_EVERY_S` seconds with the processor and wall seconds spent
+so far, locked while its job lives. When a job finishes, the meters of its earlier,
+killed attempts (unlocked ones) are added to its times and removed, so at most one
+meter period per kill goes uncounted.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import socket
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from filelock import FileLock, Timeout
 
 from kkl_bench.support.provenance import provenance
 
 LEDGER_FILE = "regeneration.json"
+METER_FOLDER = ".meters"
+METER_EVERY_S = 30.0
+"""Seconds between a running job's meter writes: the most a kill leaves uncounted."""
 
 
 def read_ledger(folder: Path) -> dict[str, Any]:
@@ -42,11 +60,81 @@ def record_job(
         "git_commit": provenance()["git_commit"],
         "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
-    path = Path(into) / LEDGER_FILE
+    _write_atomically(Path(into) / LEDGER_FILE, ledger)
+
+
+def _write_atomically(path: Path, record: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps(ledger, indent=1, sort_keys=True) + "\n")
+    temporary = path.with_suffix(f".{os.getpid()}.tmp")
+    temporary.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
     os.replace(temporary, path)
+
+
+def _meter_folder(folder: Path, key: str) -> Path:
+    """Where the meters of the job ``key`` live (one folder a job, named from its key)."""
+    name = "".join(c if c.isalnum() or c in "-_.@" else "_" for c in key)
+    return Path(folder) / METER_FOLDER / name
+
+
+@contextlib.contextmanager
+def metered(folder: Path, key: str, every_s: float = METER_EVERY_S) -> Iterator[None]:
+    """Keep a meter of the job ``key`` in ``folder`` while the block runs: every
+    ``every_s`` seconds its processor seconds (this process's, which runs one job at a
+    time) and wall seconds so far are written, under a lock held until the block ends;
+    the meter is removed when it ends, however it ends. What a killed process's meter
+    holds is added to the job's times when the job next finishes
+    (:func:`interrupted_times`)."""
+    start_cpu, start = time.process_time(), time.perf_counter()
+    attempt = f"{socket.gethostname()}-{os.getpid()}-{time.time_ns()}"
+    path = _meter_folder(folder, key) / f"{attempt}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    (Path(folder) / METER_FOLDER / ".gitignore").write_text("*\n")
+    lock = FileLock(path.with_suffix(".lock"))
+    stopped = threading.Event()
+
+    def write() -> None:
+        spent = {
+            "seconds": time.process_time() - start_cpu,
+            "wall_seconds": time.perf_counter() - start,
+        }
+        _write_atomically(path, spent)
+
+    def beat() -> None:
+        while not stopped.wait(every_s):
+            write()
+
+    with lock:
+        write()
+        beat_thread = threading.Thread(target=beat, name=f"meter {key}", daemon=True)
+        beat_thread.start()
+        try:
+            yield
+        finally:
+            stopped.set()
+            beat_thread.join()
+            path.unlink(missing_ok=True)
+    path.with_suffix(".lock").unlink(missing_ok=True)
+
+
+def interrupted_times(folder: Path, key: str) -> dict[str, float]:
+    """The seconds (processor and wall) that killed attempts of the job ``key`` spent, read
+    from their meters (those no live process holds), which are then removed."""
+    total = {"seconds": 0.0, "wall_seconds": 0.0}
+    for path in sorted(_meter_folder(folder, key).glob("*.json")):
+        lock = FileLock(path.with_suffix(".lock"))
+        try:
+            lock.acquire(timeout=0)
+        except Timeout:
+            continue  # its job is still running
+        try:
+            spent = json.loads(path.read_text())
+            for name in total:
+                total[name] += float(spent.get(name, 0.0))
+            path.unlink()
+        finally:
+            lock.release()
+        path.with_suffix(".lock").unlink(missing_ok=True)
+    return total
 
 
 def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:

@@ -12,10 +12,11 @@ of work, not cells.
 
 The run is resumable like ``kkl-bench run``: cells already in the target folder are
 skipped, and a killed training continues from its checkpoint in the model cache. Each
-job's measured processor time (one thread per job: its core-seconds) is added to the
-target folder's :data:`~kkl_bench.run.ledger.LEDGER_FILE` when it ends, so the
-core-hours of a regeneration spread over several invocations, or machines, add up; the
-board's Reproduce section reads them.
+job's measured processor time (one thread per job: its core-seconds), with what its
+killed attempts had spent (their meters, :func:`~kkl_bench.run.ledger.metered`), is
+added to the target folder's :data:`~kkl_bench.run.ledger.LEDGER_FILE` when it ends, so
+the core-hours of a regeneration spread over several invocations, or machines, add up;
+the board's Reproduce section reads them.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from kkl_bench import variants
 from kkl_bench.protocol import DT
 from kkl_bench.run import harness
 from kkl_bench.run.harness import Job, JobOutcome, RunSpec
-from kkl_bench.run.ledger import read_ledger, record_job
+from kkl_bench.run.ledger import interrupted_times, metered, read_ledger, record_job
 from kkl_bench.suite.task import Profile
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.executors import execute
@@ -199,12 +200,14 @@ def _scoring_seconds(cell, task) -> float:
     return per_step * 1e-6 * cell.n_test * samples
 
 
-def _timed_job(spec: RunSpec, job: Job) -> tuple[JobOutcome, float, float]:
-    """:func:`~kkl_bench.run.harness.run_job` on one thread, with the processor time it took
-    (s: the core-seconds it used, whatever else shares the machine, waits for another
-    job's model or pauses) and its wall time (s)."""
+def _timed_job(spec: RunSpec, job: Job, key: str) -> tuple[JobOutcome, float, float]:
+    """:func:`~kkl_bench.run.harness.run_job` on one thread, metered under ``key`` in the
+    target folder, with the processor time it took (s: the core-seconds it used,
+    whatever else shares the machine, waits for another job's model or pauses) and its
+    wall time (s)."""
     start, start_cpu = time.perf_counter(), time.process_time()
-    outcome = harness.run_job(spec, job)  # on one thread (kkl_bench.support.executors)
+    with metered(spec.results_dir, key):
+        outcome = harness.run_job(spec, job)  # on one thread (kkl_bench.support.executors)
     return outcome, time.process_time() - start_cpu, time.perf_counter() - start
 
 
@@ -218,17 +221,21 @@ def run(
 ) -> dict[str, Any]:
     """Run ``planned``'s jobs (``jobs`` at once, through
     :func:`~kkl_bench.support.executors.execute`), adding each finished job's processor
-    and wall time to the ledger in ``into`` as it ends; ``progress(planned_job, outcome)``
-    after each. Returns the ledger."""
+    and wall time, with its killed attempts', to the ledger in ``into`` as it ends;
+    ``progress(planned_job, outcome)`` after each. Returns the ledger."""
     by_job = {planned_job.job: planned_job for planned_job in planned.jobs}
-    arguments = [(p.spec, p.job) for p in planned.jobs]
+    arguments = [(p.spec, p.job, p.key) for p in planned.jobs]
     for outcome, seconds, wall in execute(_timed_job, arguments, jobs, executor, scheduler):
         planned_job = by_job[outcome.job]
         failed = sum(cell.status == "error" for cell in outcome.scored)
+        earlier = interrupted_times(into, planned_job.key)
         record_job(
             into,
             planned_job.key,
-            {"seconds": seconds, "wall_seconds": wall},
+            {
+                "seconds": seconds + earlier["seconds"],
+                "wall_seconds": wall + earlier["wall_seconds"],
+            },
             planned_job.estimate_s,
             len(outcome.scored),
             failed,
