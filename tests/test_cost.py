@@ -15,7 +15,7 @@ from kkl_bench.analysis import cost
 from kkl_bench.analysis.leaderboard import measured_cost_table
 from kkl_bench.cli import main
 from kkl_bench.report.markdown import table
-from kkl_bench.run.spec import RunSpec, fit_context_for_row
+from kkl_bench.run.spec import RunSpec, fit_context_for_row, make_fit_context
 from kkl_bench.suite.task import get_profile
 
 
@@ -286,3 +286,31 @@ def test_a_filter_is_timed_on_its_compiled_engine_with_its_reference_and_floor(t
         np.testing.assert_allclose(row["floor_us_per_trajectory_step"], floor, rtol=1e-5)
         ratio = row["us_per_trajectory_step"] / floor  # the file keeps 6 digits
         np.testing.assert_allclose(row["over_floor"], ratio, rtol=1e-5)
+
+
+def test_on_a_track_fitted_per_sensor_each_task_is_timed_on_its_own_fit(tmp_path, monkeypatch):
+    spec = RunSpec(
+        estimators=("ukf",),
+        systems=("duffing",),
+        tracks=("hard",),
+        regimes=("outliers-sinusoid", "quantized-sinusoid", "outliers-square"),
+        profile=get_profile("quick"),
+        seeds=(0,),
+        results_dir=tmp_path,
+        cache_dir=tmp_path,
+    )
+    contexts = []
+
+    class Recorder:
+        def fit(self, context):
+            contexts.append(context)
+            return SimpleNamespace(measurement=context.measurement)
+
+    monkeypatch.setattr(variants, "build", lambda variant: Recorder())
+    fitted = cost.fitted_for_tasks(spec, "ukf", "duffing", "ukf")
+    by_regime = {task.regime: model.measurement for task, model in fitted.items()}
+    assert len(contexts) == 2  # one fit per sensor, as a run fits the track
+    assert by_regime["outliers-sinusoid"] is by_regime["outliers-square"]
+    assert by_regime["outliers-sinusoid"] != by_regime["quantized-sinusoid"]
+    protocol = make_fit_context(spec, "ukf", "duffing", 0).measurement  # what it was fitted for
+    assert protocol not in by_regime.values()

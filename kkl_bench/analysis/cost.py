@@ -44,10 +44,11 @@ import torch
 from tqdm import tqdm
 
 from kkl_bench import families, variants
+from kkl_bench.estimator import Estimator
 from kkl_bench.registry import estimators
 from kkl_bench.run.scoring import timed_estimate, warm_up
-from kkl_bench.run.spec import RunSpec, make_fit_context
-from kkl_bench.suite.task import make_test_set
+from kkl_bench.run.spec import RunSpec, fit_groups, make_fit_context
+from kkl_bench.suite.task import Task, make_test_set
 from kkl_bench.support import flops
 from kkl_bench.support.executors import thread_limit
 from kkl_bench.support.provenance import provenance
@@ -286,8 +287,9 @@ def measure(
     merge one row per (estimator, system, task) into ``out`` (CSV, :data:`COLUMNS`).
 
     The reference's own rows enter ``out`` only if ``spec`` asks for it. Each estimator
-    is fitted once per system with the first seed it runs with (from the cache when it
-    holds the model). ``out`` is written after every round: an interrupted run keeps what
+    is fitted as a run fits it (:func:`fitted_for_tasks`: once per system, or once per
+    measurement model on a track fitted per task) with the first seed it runs with (from
+    the cache when it holds the model). ``out`` is written after every round: an interrupted run keeps what
     it measured. ``replace`` drops the rows stored before. Returns this run's rows.
     """
     commit = provenance()["git_commit"]  # the code that runs, read before anything is loaded
@@ -302,29 +304,27 @@ def measure(
         unit="model",
     ):
         for engine, variant in engines[name].items():
-            context = make_fit_context(spec, variant, system, spec.seeds_for(name)[0])
-            fitted[name, engine, system] = variants.build(variant).fit(context)
+            for task, model in fitted_for_tasks(spec, variant, system, name).items():
+                fitted[name, engine, task] = model
         for task in spec.tasks(system):
             test_sets.setdefault(task, make_test_set(task, spec.profile.n_test).data)
     calls = {
-        (name, engine, task): functools.partial(
-            timed_estimate, fitted[name, engine, task.system], data
-        )
+        (name, engine, task): functools.partial(timed_estimate, fitted[name, engine, task], data)
         for name in timed
         for engine in engines[name]
         for task, data in test_sets.items()
     }
     with thread_limit(threads):
         for name, engine, task in calls:
-            warm_up(fitted[name, engine, task.system], test_sets[task])
+            warm_up(fitted[name, engine, task], test_sets[task])
     row_engine = {name: next(iter(engines[name])) for name in timed}  # compiled if any
     arithmetic = {
-        (name, task): counted_flops(fitted[name, row_engine[name], task.system], test_sets[task])
+        (name, task): counted_flops(fitted[name, row_engine[name], task], test_sets[task])
         for name in tqdm(spec.estimators, desc="counting flops", unit="row")
         for task in test_sets
     }
     operations = {
-        (name, task): counted_operations(fitted[name, row_engine[name], task.system])
+        (name, task): counted_operations(fitted[name, row_engine[name], task])
         for name in spec.estimators
         for task in test_sets
     }
@@ -363,7 +363,7 @@ def measure(
                     "reference_us_per_trajectory_step": _per_step(
                         best.get((REFERENCE, row_engine[REFERENCE], task), math.nan), data
                     ),
-                    "engine": getattr(fitted[name, engine, task.system], "engine_used", engine),
+                    "engine": getattr(fitted[name, engine, task], "engine_used", engine),
                     "reference_engine_us_per_trajectory_step": (
                         _per_step(reference_engine, data) if engine == "compiled" else math.nan
                     ),
@@ -391,6 +391,19 @@ def measure(
         calls, rounds, threads, max_seconds, save, group=lambda key: key[:2]
     )
     return rows(best, counts)
+
+
+def fitted_for_tasks(spec: RunSpec, variant: str, system: str, row: str) -> dict[Task, Estimator]:
+    """``variant`` fitted for each task of ``spec`` on ``system`` as a run fits it (once per
+    group of :func:`~kkl_bench.run.spec.fit_groups`: on a track fitted per measurement
+    model, with that model's conditions), with the first seed ``row`` runs with."""
+    seed = spec.seeds_for(row)[0]
+    fitted = {}
+    for conditions, tasks in fit_groups(spec.tasks(system)):
+        context = make_fit_context(spec, variant, system, seed, conditions=conditions)
+        model = variants.build(variant).fit(context)
+        fitted.update(dict.fromkeys(tasks, model))
+    return fitted
 
 
 def _per_step(seconds: float, data) -> float:
