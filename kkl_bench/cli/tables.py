@@ -1,14 +1,18 @@
-"""``kkl-bench leaderboard`` and ``kkl-bench compare``: tables of stored results in the terminal."""
+"""``kkl-bench leaderboard``, ``kkl-bench compare`` and ``kkl-bench trainings``: tables of stored
+results in the terminal."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from kkl_bench.analysis import comparisons, leaderboard
+from kkl_bench.analysis import comparisons, leaderboard, trainings
+from kkl_bench.analysis.document import Table
 from kkl_bench.analysis.summary import summary_table, track_summary, version_groups
 from kkl_bench.cli.common import add_reading_arguments, exit_status, load, of_track
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report import markdown, text
+from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile, load_profiles
 from kkl_bench.suite.tracks import get_track
 
@@ -57,6 +61,24 @@ def add_parser(commands) -> None:
     )
     versus.set_defaults(handler=compare)
 
+    fits = commands.add_parser(
+        "trainings",
+        help="how the learned rows' trainings ended: steps, why they stopped, the step kept",
+        description="Per learned row, system and training (read from the fit reports of the "
+        "track's cells, each fit once): the fits, their steps, how many stopped at the "
+        "plateau, at the cap or diverged (protocol 6.5), and the median step whose state was "
+        "kept. With --before, each row's mean RMSE per system against another results "
+        "folder's, on the cells both hold (a refit's before and after).",
+    )
+    add_reading_arguments(fits)
+    fits.add_argument(
+        "--track", default=PAPER_TRACK, metavar="NAME", help="the track (default: paper)"
+    )
+    fits.add_argument(
+        "--before", type=Path, metavar="DIR", help="results to compare each row's RMSE with"
+    )
+    fits.set_defaults(handler=print_trainings)
+
 
 def print_leaderboard(args: argparse.Namespace) -> int:
     results, damaged = load(args, check_versions=not args.by_version)
@@ -88,4 +110,17 @@ def compare(args: argparse.Namespace) -> int:
     results, damaged = load(args)
     results = of_track(results, args.track)
     print(markdown.table(comparisons.comparison_table(summary_table(results), args.a, args.b)))
+    return exit_status(args, damaged)
+
+
+def print_trainings(args: argparse.Namespace) -> int:
+    results, damaged = load(args)
+    results = of_track(results, args.track)
+    records = trainings.training_records(results)
+    if records.empty:
+        raise ValueError(f"no trained fits among the {args.track} track's cells in {args.results}/")
+    print(markdown.table(Table(trainings.training_table(records), floatfmt=".5g")))
+    if args.before is not None:
+        before = of_track(load_results(args.before, profile=results["profile"].iloc[0]), args.track)
+        print("\n" + markdown.table(Table(trainings.rmse_change(before, results), floatfmt=".4g")))
     return exit_status(args, damaged)

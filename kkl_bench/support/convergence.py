@@ -91,15 +91,21 @@ def outcomes(report: Any) -> list[str]:
     return found
 
 
-def curves(report: Any, path: tuple[str, ...] = ()) -> list[tuple[str, list]]:
-    """Every validation curve in a fit ``report`` (nested dicts), in order, each with the
-    path of keys that leads to it (``"training_log"``, ``"phase1_log.decoder"``)."""
+def trainings(report: Any, path: tuple[str, ...] = ()) -> list[tuple[str, dict]]:
+    """Every training's record in a fit ``report`` (nested dicts; a record is a dict with a
+    ``validation_curve``), in order, each with the path of keys that leads to it
+    (``"training_log"``, ``"phase1_log.decoder"``)."""
     if not isinstance(report, dict):
         return []
-    found = [(".".join(path), report["validation_curve"])] if "validation_curve" in report else []
+    found = [(".".join(path), report)] if "validation_curve" in report else []
     for key, value in report.items():
-        found += curves(value, (*path, key))
+        found += trainings(value, (*path, key))
     return found
+
+
+def curves(report: Any) -> list[tuple[str, list]]:
+    """Every validation curve in a fit ``report``, in order, with its path (:func:`trainings`)."""
+    return [(path, record["validation_curve"]) for path, record in trainings(report)]
 
 
 def trained(report: Any) -> bool:

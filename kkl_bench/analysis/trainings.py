@@ -1,0 +1,114 @@
+"""How the learned rows' trainings ended (protocol 6.5), read from the fit reports of
+stored cells, and how a refit moved a row's error (``kkl-bench trainings``).
+
+Every training of a learned row records in its fit report the steps it ran, why it
+stopped (``plateau``, ``cap`` or ``diverged``; nothing for a training from before the
+plateau rule) and the step whose state it kept (:mod:`kkl_bench.support.convergence`
+finds them). The cells a fit scored share its report, so a fit is counted once: by
+row, system, seed and the report itself.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+
+from kkl_bench.support.convergence import STOPPED_BY, trained, trainings
+
+UNRECORDED_STOP = "not recorded"
+"""Why a training stopped, for one from before the plateau rule (its report says not)."""
+STOPS = (*STOPPED_BY, UNRECORDED_STOP)
+
+TRAINING_COLUMNS = ["estimator", "system", "seed", "training", "steps", "stopped", "best_step"]
+
+
+def training_records(cells: pd.DataFrame) -> pd.DataFrame:
+    """One row per training of each distinct fit behind ``cells`` (the rows of
+    :func:`~kkl_bench.run.results.load_results`): ``estimator``, ``system``, ``seed``,
+    ``training`` (its path in the fit report, such as ``phase1_log.decoder``),
+    ``steps``, ``stopped`` (:data:`STOPS`) and ``best_step``, the step of the state kept.
+    A training from before the plateau rule records neither its steps nor a best step:
+    its steps are read as its curve's last measurement's, and it kept its last step
+    (protocol 6.5)."""
+    records, seen = [], set()
+    for cell in cells.itertuples(index=False):
+        report = cell.fit_report
+        if not trained(report):
+            continue
+        fit = (cell.estimator, cell.system, cell.seed, json.dumps(report, sort_keys=True))
+        if fit in seen:
+            continue
+        seen.add(fit)
+        for path, training in trainings(report):
+            curve = training["validation_curve"]
+            steps = training.get("steps", curve[-1][0] if curve else np.nan)
+            records.append(
+                {
+                    "estimator": cell.estimator,
+                    "system": cell.system,
+                    "seed": cell.seed,
+                    "training": path,
+                    "steps": steps,
+                    "stopped": training.get("stopped", UNRECORDED_STOP),
+                    "best_step": training.get(
+                        "best_step", np.nan if "stopped" in training else steps
+                    ),
+                }
+            )
+    return pd.DataFrame(records, columns=TRAINING_COLUMNS)
+
+
+def training_table(records: pd.DataFrame) -> pd.DataFrame:
+    """Per row, system and training (in the order met): how many fits ran it, the median
+    and range of their steps, how many stopped for each reason (:data:`STOPS`, those that
+    occurred), and the median step of the state kept."""
+    stops = [stop for stop in STOPS if (records["stopped"] == stop).any()]
+    rows = []
+    for (estimator, system, training), group in records.groupby(
+        ["estimator", "system", "training"], sort=False
+    ):
+        steps = group["steps"]
+        rows.append(
+            {
+                "Row": estimator,
+                "System": system,
+                "Training": training,
+                "Fits": len(group),
+                "Steps (median)": steps.median(),
+                "Steps (range)": f"{steps.min():.0f}-{steps.max():.0f}",
+                **{f"Stopped: {stop}": int((group["stopped"] == stop).sum()) for stop in stops},
+                "Kept step (median)": group["best_step"].median(),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def rmse_change(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
+    """Per row and system, the mean RMSE over the cells (task and seed) that both
+    ``before`` and ``after`` hold, in each, and their ratio (after / before); a row or
+    system one of them lacks is left out."""
+    key = ["estimator", "task", "seed"]
+    both = before[[*key, "system", "rmse_mean"]].merge(
+        after[[*key, "rmse_mean"]], on=key, suffixes=(" before", " after")
+    )
+    table = (
+        both.groupby(["estimator", "system"], sort=False)
+        .agg(
+            cells=("task", "size"),
+            before=("rmse_mean before", "mean"),
+            after=("rmse_mean after", "mean"),
+        )
+        .reset_index()
+    )
+    table["after / before"] = table["after"] / table["before"]
+    return table.rename(
+        columns={
+            "estimator": "Row",
+            "system": "System",
+            "cells": "Cells",
+            "before": "RMSE before",
+            "after": "RMSE after",
+        }
+    )

@@ -1,0 +1,107 @@
+"""`kkl-bench trainings`: each fit's trainings read once from its cells' reports, and a
+row's RMSE against another folder's."""
+
+import math
+
+import pandas as pd
+import pytest
+
+from kkl_bench.analysis import trainings
+
+
+def report(decoder_steps, stopped="plateau", best=None, level="sine 0.2-0.8 rad/s"):
+    """A fit report of a Phase-1 decoder and one curriculum level (whose name has dots)."""
+    decoder = {
+        "validation_curve": [[0, 1.0], [decoder_steps, 0.1]],
+        "steps": decoder_steps,
+        "stopped": stopped,
+        "best_step": decoder_steps if best is None else best,
+    }
+    old_level = {"validation_curve": [[0, 1.0], [200, 0.5], [400, 0.4]]}  # before the rule
+    return {
+        "phase1_log": {"decoder": decoder},
+        "training_log": {level: old_level},
+        "spent": {"phase1": {"steps": decoder_steps}},
+    }
+
+
+def cells():
+    """Two seeds of one row on Duffing, each fit scored on two regimes; a filter's cell."""
+    rows = []
+    for seed, fit in ((0, report(12000, best=11800)), (1, report(20000, "cap", best=14000))):
+        for regime, rmse in (("zero", 0.1 + seed), ("square", 0.3 + seed)):
+            rows.append(("curriculum_kkl", seed, regime, fit, rmse))
+    rows.append(("ekf", 0, "zero", {}, 0.05))
+    return pd.DataFrame(
+        [
+            {
+                "estimator": row,
+                "system": "duffing",
+                "task": f"duffing/{regime}@v1",
+                "seed": seed,
+                "fit_report": fit,
+                "rmse_mean": rmse,
+            }
+            for row, seed, regime, fit, rmse in rows
+        ]
+    )
+
+
+def test_each_fit_is_read_once_with_its_trainings_steps_stop_and_kept_step():
+    records = trainings.training_records(cells())
+    assert len(records) == 4  # two fits of two trainings; the filter trains nothing
+    table = trainings.training_table(records).set_index("Training")
+    decoder = table.loc["phase1_log.decoder"]
+    assert decoder["Fits"] == 2 and decoder["Steps (median)"] == 16000
+    assert decoder["Steps (range)"] == "12000-20000"
+    assert (decoder["Stopped: plateau"], decoder["Stopped: cap"]) == (1, 1)
+    assert decoder["Kept step (median)"] == 12900
+    level = table.loc["training_log.sine 0.2-0.8 rad/s"]  # before the rule: its last step
+    assert level["Stopped: not recorded"] == 2 and level["Steps (median)"] == 400
+    assert level["Kept step (median)"] == 400
+    assert "Stopped: diverged" not in table.columns  # only the reasons that occurred
+
+
+def test_a_rows_rmse_is_compared_on_the_cells_both_folders_hold():
+    after = cells()
+    before = after.assign(rmse_mean=after["rmse_mean"] * 2)
+    before = before[~((before["seed"] == 1) & before["task"].str.contains("square"))]
+    change = trainings.rmse_change(before, after).set_index("Row")
+    row = change.loc["curriculum_kkl"]
+    assert row["Cells"] == 3
+    assert row["RMSE after"] == pytest.approx((0.1 + 0.3 + 1.1) / 3)
+    assert row["after / before"] == pytest.approx(0.5)
+    assert math.isclose(change.loc["ekf", "after / before"], 0.5)
+
+
+def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, capsys):
+    from kkl_bench.cli import main
+
+    results = str(tmp_path / "results")
+    run = ["run", "--system", "vdp", "--regime", "zero", "--results", results]
+    assert main([*run, "--estimator", "autonomous_kkl", "ekf"]) == 0
+    capsys.readouterr()
+    assert main(["trainings", "--results", results, "--before", results]) == 0
+    steps, change = capsys.readouterr().out.split("\n\n")
+    assert "| autonomous_kkl | vdp      | phase1_log.encoder |" in steps
+    assert "| autonomous_kkl | vdp      | phase1_log.decoder |" in steps and "ekf" not in steps
+    assert "| ekf " in change and change.count("|                1 |") == 2  # after / before
+    filters = str(tmp_path / "filters")
+    assert (
+        main(
+            [
+                "run",
+                "--system",
+                "vdp",
+                "--regime",
+                "zero",
+                "--estimator",
+                "ekf",
+                "--results",
+                filters,
+            ]
+        )
+        == 0
+    )
+    assert main(["trainings", "--results", filters]) == 2
+    assert "no trained fits among the paper track's cells" in capsys.readouterr().err
