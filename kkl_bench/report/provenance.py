@@ -191,20 +191,25 @@ def _versions(results: pd.DataFrame) -> dict[str, list[str]]:
     return {key: sorted(values) for key, values in facts.items()}
 
 
-def regeneration_sentence(summary: dict | None) -> str:
+def regeneration_sentence(summary: dict | None, cells: int) -> str:
     """What the Reproduce section says of the ``kkl-bench regenerate`` runs that wrote the
-    results (:func:`kkl_bench.run.regenerate.ledger_summary` of their ledger)."""
+    results (:func:`kkl_bench.run.regenerate.ledger_summary` of their ledger), of the
+    board's ``cells``."""
     if summary is None:
         return (
             "These results were not written by `kkl-bench regenerate` (their folder holds no "
             "ledger of one): the core-hours they took are not recorded."
         )
     commits = ", ".join(summary["commits"])
+    share = (
+        f"all {cells} cells"
+        if summary["cells"] >= cells
+        else f"{summary['cells']} of the {cells} cells (the others' runs are listed below)"
+    )
     return (
-        f"Written by `kkl-bench regenerate`: {summary['jobs']} fits making "
-        f"{summary['cells']} cells in **{summary['core_hours']:.1f} core-hours** measured "
-        f"(processor time, one thread a fit; {summary['estimated_core_hours']:.1f} "
-        "estimated beforehand), "
+        f"Written by `kkl-bench regenerate`: {share}, by {summary['jobs']} fits, in "
+        f"**{summary['core_hours']:.1f} core-hours** measured (processor time, one thread a "
+        f"fit; {summary['estimated_core_hours']:.1f} estimated beforehand), "
         f"at commit{'s' if len(summary['commits']) > 1 else ''} {commits}, the fits "
         f"finishing between {summary['from']} and {summary['to']}."
     )
@@ -258,7 +263,7 @@ def provenance_sections(board: Board) -> list[Section]:
         Section(
             "Reproduce",
             [
-                Text(regeneration_sentence(board.regeneration)),
+                Text(regeneration_sentence(board.regeneration, len(cells))),
                 Text(RUNS_TEXT),
                 Table(board.runs, RUN_COLUMNS, id="runs"),
                 *listed,
