@@ -114,6 +114,8 @@ def metered(folder: Path, key: str, every_s: float = METER_EVERY_S) -> Iterator[
             beat_thread.join()
             path.unlink(missing_ok=True)
     path.with_suffix(".lock").unlink(missing_ok=True)
+    with contextlib.suppress(OSError):  # the job's folder, unless another attempt's meter is in it
+        path.parent.rmdir()
 
 
 def interrupted_times(folder: Path, key: str) -> dict[str, float]:
@@ -134,6 +136,8 @@ def interrupted_times(folder: Path, key: str) -> dict[str, float]:
         finally:
             lock.release()
         path.with_suffix(".lock").unlink(missing_ok=True)
+    with contextlib.suppress(OSError):  # gone, or another attempt's meter is in it
+        _meter_folder(folder, key).rmdir()
     return total
 
 
