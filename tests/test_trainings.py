@@ -105,3 +105,37 @@ def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, cap
     )
     assert main(["trainings", "--results", filters]) == 2
     assert "no trained fits among the paper track's cells" in capsys.readouterr().err
+
+
+def test_a_diverged_training_says_why_and_which_state_was_kept():
+    under_rule = {
+        "validation_curve": [[0, 1.0], [200, 0.5], [400, math.inf]],
+        "stopped": "diverged",
+        "best_step": 200,
+    }
+    assert trainings.divergence(under_rule) == "validation error inf at step 400"
+    assert trainings.divergence({**under_rule, "stopped": "cap"}) == ""
+    rose = {"validation_curve": [[0, 1.0], [200, 0.1], [400, 0.25]]}  # before the rule
+    assert (
+        trainings.divergence(rose)
+        == "validation error 0.25 at its last step 400, 2.5 times its best"
+    )
+    assert trainings.divergence({"validation_curve": [[0, 1.0], [200, 0.1], [400, 0.19]]}) == ""
+    not_finite = {"validation_curve": [[0, 1.0], [200, math.nan], [400, 0.1]]}
+    assert trainings.divergence(not_finite) == "validation error not finite at step 200"
+
+    frame = cells()  # seed 0's zero cell from another fit, whose curriculum level rose
+    frame.at[0, "fit_report"] = {**report(400), "training_log": {"level": rose}}
+    spent = {"phase1": {"steps": 400}}  # the last cell: a decoder whose error was not finite
+    frame.at[4, "fit_report"] = {"phase1_log": {"decoder": under_rule}, "spent": spent}
+    sentence = trainings.diverged_sentence(trainings.training_records(frame))
+    assert sentence.startswith("Diverged (2 of ")
+    assert (
+        "`curriculum_kkl` on duffing, seed 0, `training_log.level`: validation error 0.25"
+        in sentence
+    )
+    assert (
+        "`ekf` on duffing, seed 0, `phase1_log.decoder`: validation error inf at step 400 (the state of step 200 kept)."
+        in sentence
+    )
+    assert trainings.diverged_sentence(trainings.training_records(cells())) == ""

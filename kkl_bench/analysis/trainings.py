@@ -11,24 +11,35 @@ row, system, seed and the report itself.
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pandas as pd
 
-from kkl_bench.support.convergence import STOPPED_BY, trained, trainings
+from kkl_bench.support.convergence import DIVERGED, STOPPED_BY, outcome, trained, trainings
 
 UNRECORDED_STOP = "not recorded"
 """Why a training stopped, for one from before the plateau rule (its report says not)."""
 STOPS = (*STOPPED_BY, UNRECORDED_STOP)
 
-TRAINING_COLUMNS = ["estimator", "system", "seed", "training", "steps", "stopped", "best_step"]
+TRAINING_COLUMNS = [
+    "estimator",
+    "system",
+    "seed",
+    "training",
+    "steps",
+    "stopped",
+    "best_step",
+    "diverged",
+]
 
 
 def training_records(cells: pd.DataFrame) -> pd.DataFrame:
     """One row per training of each distinct fit behind ``cells`` (the rows of
     :func:`~kkl_bench.run.results.load_results`): ``estimator``, ``system``, ``seed``,
     ``training`` (its path in the fit report, such as ``phase1_log.decoder``),
-    ``steps``, ``stopped`` (:data:`STOPS`) and ``best_step``, the step of the state kept.
+    ``steps``, ``stopped`` (:data:`STOPS`), ``best_step``, the step of the state kept,
+    and ``diverged``, why the training diverged (:func:`divergence`; empty if it did not).
     A training from before the plateau rule records neither its steps nor a best step:
     its steps are read as its curve's last measurement's, and it kept its last step
     (protocol 6.5)."""
@@ -55,9 +66,55 @@ def training_records(cells: pd.DataFrame) -> pd.DataFrame:
                     "best_step": training.get(
                         "best_step", np.nan if "stopped" in training else steps
                     ),
+                    "diverged": divergence(training),
                 }
             )
     return pd.DataFrame(records, columns=TRAINING_COLUMNS)
+
+
+def divergence(training: dict) -> str:
+    """Why a training (its record in a fit report) diverged, read from its validation curve,
+    or ``""`` if it did not (protocol 6.5): under the plateau rule, the validation error
+    that was not finite and its step; before it, a curve that ended above
+    :data:`~kkl_bench.support.convergence.DIVERGED_RATIO` times its best."""
+    curve = training["validation_curve"]
+    if "stopped" in training:
+        if training["stopped"] != DIVERGED:
+            return ""
+        step, error = next(((s, e) for s, e in curve if not math.isfinite(e)), curve[-1])
+        return f"validation error {error} at step {step:.0f}"
+    if outcome(curve) != DIVERGED:
+        return ""
+    errors = [error for _, error in curve]
+    if not all(math.isfinite(error) for error in errors):
+        step = next(s for s, e in curve if not math.isfinite(e))
+        return f"validation error not finite at step {step:.0f}"
+    best, (step, last) = min(errors), curve[-1]
+    return (
+        f"validation error {last:.3g} at its last step {step:.0f}, {last / best:.3g} times its best"
+    )
+
+
+def diverged_sentence(records: pd.DataFrame, counted: str = "trainings") -> str:
+    """The trainings among ``records`` (:func:`training_records`) that diverged, each with
+    its reason and, under the plateau rule, the step of the state kept, as one sentence
+    (``counted`` names what ``records`` are); ``""`` if none did."""
+    diverged = records[records["diverged"] != ""]
+    if diverged.empty:
+        return ""
+    listed = [
+        f"`{row.estimator}` on {row.system}, seed {row.seed}, `{row.training}`: {row.diverged}"
+        + (f" (the state of step {row.best_step:.0f} kept)" if row.stopped == DIVERGED else "")
+        for row in diverged.itertuples(index=False)
+    ]
+    return f"Diverged ({len(listed)} of {len(records)} {counted}): " + "; ".join(listed) + "."
+
+
+def own_records(records: pd.DataFrame, shared: pd.DataFrame) -> pd.DataFrame:
+    """The rows of ``records`` that ``shared`` lacks: a track's own trainings, without those
+    of the fits it shares with another track (the paper track's, scored again)."""
+    merged = records.merge(shared, how="left", indicator=True)
+    return records[(merged["_merge"] == "left_only").to_numpy()]
 
 
 def training_table(records: pd.DataFrame) -> pd.DataFrame:

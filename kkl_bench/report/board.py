@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import pandas as pd
 
 from kkl_bench import families, variants
-from kkl_bench.analysis import figures, findings
+from kkl_bench.analysis import figures, findings, trainings
 from kkl_bench.analysis.comparisons import comparison_cells, limit_table, one_line_answer
 from kkl_bench.analysis.cost import COST_FILE
 from kkl_bench.analysis.document import HTML, Figure, Section, Table, Text
@@ -311,9 +311,12 @@ KKL estimator that trained it, and a variant that changes only how trained
 networks are used online (such as `[guard=True]`) shows only the time to load
 them; a fit resumed from its checkpoints after an interruption shows only
 the time since it resumed. Converged (protocol 6.5, read from each training's
-validation curve): `yes` when every curve had flattened, `no` when one was
-still falling as its budget ended, `diverged` when one ended above twice its
-best error, `not recorded` for models trained before the curves were. """
+record): `yes` when the plateau rule stopped every training, `no` when one
+reached its cap of steps, `diverged` when one's validation error was not
+finite; a training from before the rule reads `yes` when its curve had
+flattened, `no` when it was still falling as its budget ended, `diverged` when
+it ended above twice its best error; `not recorded` for models trained before
+the curves were. """
 
 
 def cost_source(costs: pd.DataFrame | None) -> str:
@@ -377,6 +380,9 @@ def cost_finding(costs: pd.DataFrame) -> str:
 
 def cost_section(board: Board) -> Section:
     blocks: list = [Text(COST_TEXT + cost_source(board.costs)), cost_table(board.summary)]
+    diverged = trainings.diverged_sentence(trainings.training_records(board.results))
+    if diverged:
+        blocks.append(Text(diverged))
     if board.costs is not None and not board.costs.empty:
         blocks += [
             Text(

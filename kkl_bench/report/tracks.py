@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pandas as pd
 
+from kkl_bench.analysis import trainings
 from kkl_bench.analysis.comparisons import (
     calibrated_versus_learned,
     comparison_cells,
@@ -231,6 +232,15 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
             Text(CONDITIONS_TEXT),
             track_summary_table(grouped, "condition", id=f"track-{name}-conditions"),
         ]
+    diverged = trainings.diverged_sentence(
+        trainings.own_records(
+            trainings.training_records(board.tables.cells[name]),
+            trainings.training_records(board.results),
+        ),
+        "trainings of this track's fits not shared with the paper track",
+    )
+    if diverged:
+        blocks.append(Text(diverged))
     reasons = unsupported_reasons(board.tables.cells[name])
     if reasons:
         blocks.append(
