@@ -94,3 +94,22 @@ def test_a_dirty_cell_re_derived_at_a_committed_tree_says_so():
         in (dirty_sentence(dirty, 2))
     )
     assert "re-derived since" not in dirty_sentence(dirty_cells(results), 2)
+
+
+def test_the_board_says_which_commits_trained_its_models():
+    from kkl_bench.report.provenance import training_commit_sentence
+
+    def spent(*commits):
+        phases = {f"phase{i}": {"steps": 10, "git_commit": c} for i, c in enumerate(commits)}
+        return {"spent": phases or {"fit": {"steps": 10}}}
+
+    one = pd.DataFrame({"fit_report": [spent("aaa"), spent("aaa"), {}]})  # {}: a filter
+    assert training_commit_sentence(one) == (
+        "Every one of the 2 cells of trained models was trained at `aaa`."
+    )
+    mixed = pd.DataFrame({"fit_report": [spent("aaa"), spent("aaa", "bbb"), spent(), spent("aaa")]})
+    assert training_commit_sentence(mixed) == (
+        "The 4 cells of trained models were trained at 3 commits or sets of commits (cells "
+        "each): `aaa` (2); `aaa, bbb` (1); not recorded (1)."
+    )
+    assert training_commit_sentence(pd.DataFrame({"fit_report": [{}]})) == ""

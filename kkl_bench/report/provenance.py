@@ -61,6 +61,31 @@ def _trained_by(reports) -> str:
     return "; ".join(parts)
 
 
+def training_commit_sentence(results: pd.DataFrame) -> str:
+    """Which commits trained the models of the cells of ``results`` whose rows train (each
+    cell's ``fit_report.spent``), with how many cells each: one sentence, empty if no
+    cell's model was trained."""
+    reports = [report for report in results["fit_report"] if trained(report)]
+    if not reports:
+        return ""
+    counts: dict[str, int] = {}
+    for report in reports:
+        commits = training_commits(report)
+        key = ", ".join(sorted(commits)) if commits else NOT_RECORDED
+        counts[key] = counts.get(key, 0) + 1
+    if len(counts) == 1 and NOT_RECORDED not in counts:
+        (commit,) = counts
+        return f"Every one of the {len(reports)} cells of trained models was trained at `{commit}`."
+    listed = "; ".join(
+        f"{'`' + key + '`' if key != NOT_RECORDED else key} ({count})"
+        for key, count in sorted(counts.items(), key=lambda item: -item[1])
+    )
+    return (
+        f"The {len(reports)} cells of trained models were trained at {len(counts)} "
+        f"commits or sets of commits (cells each): {listed}."
+    )
+
+
 def dirty_cells(results: pd.DataFrame, verifications: pd.DataFrame | None = None) -> pd.DataFrame:
     """The cells made by code with uncommitted changes: scored, or whose model was trained,
     from a ``-dirty`` checkout. Columns ``cell`` (row, system, track, task, seed),
@@ -263,7 +288,11 @@ def provenance_sections(board: Board) -> list[Section]:
         Section(
             "Reproduce",
             [
-                Text(regeneration_sentence(board.regeneration, len(cells))),
+                Text(
+                    regeneration_sentence(board.regeneration, len(cells))
+                    + " "
+                    + training_commit_sentence(cells)
+                ),
                 Text(RUNS_TEXT),
                 Table(board.runs, RUN_COLUMNS, id="runs"),
                 *listed,
