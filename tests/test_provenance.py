@@ -7,6 +7,7 @@ from kkl_bench.report.provenance import (
     dirty_cells,
     dirty_sentence,
     runs_frame,
+    training_commit_sentence,
     training_commits,
 )
 
@@ -97,8 +98,6 @@ def test_a_dirty_cell_re_derived_at_a_committed_tree_says_so():
 
 
 def test_the_board_says_which_commits_trained_its_models():
-    from kkl_bench.report.provenance import training_commit_sentence
-
     def spent(*commits):
         phases = {f"phase{i}": {"steps": 10, "git_commit": c} for i, c in enumerate(commits)}
         return {"spent": phases or {"fit": {"steps": 10}}}

@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 
 from kkl_bench.cli import main
+from kkl_bench.report.provenance import regeneration_sentence
 from kkl_bench.run import harness, ledger, regenerate
 from kkl_bench.run.harness import Job
 from kkl_bench.run.results import load_results
@@ -161,8 +162,6 @@ def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, t
 
 
 def test_the_board_says_how_many_of_its_cells_the_regeneration_wrote(published, tmp_path):
-    from kkl_bench.report.provenance import regeneration_sentence
-
     into = tmp_path / "into"
     regenerate.run(regenerate.plan(load_results(published), PROFILE, into, tmp_path / "c"), into)
     summary = ledger.ledger_summary(ledger.read_ledger(into))

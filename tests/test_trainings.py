@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 
 from kkl_bench.analysis import trainings
+from kkl_bench.cli import main
 
 
 def report(decoder_steps, stopped="plateau", best=None, level="sine 0.2-0.8 rad/s"):
@@ -75,8 +76,6 @@ def test_a_rows_rmse_is_compared_on_the_cells_both_folders_hold():
 
 
 def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, capsys):
-    from kkl_bench.cli import main
-
     results = str(tmp_path / "results")
     run = ["run", "--system", "vdp", "--regime", "zero", "--results", results]
     assert main([*run, "--estimator", "autonomous_kkl", "ekf"]) == 0

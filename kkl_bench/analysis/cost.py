@@ -289,8 +289,9 @@ def measure(
     The reference's own rows enter ``out`` only if ``spec`` asks for it. Each estimator
     is fitted as a run fits it (:func:`fitted_for_tasks`: once per system, or once per
     measurement model on a track fitted per task) with the first seed it runs with (from
-    the cache when it holds the model). ``out`` is written after every round: an interrupted run keeps what
-    it measured. ``replace`` drops the rows stored before. Returns this run's rows.
+    the cache when it holds the model). ``out`` is written after every round: an
+    interrupted run keeps what it measured. ``replace`` drops the rows stored before.
+    Returns this run's rows.
     """
     commit = provenance()["git_commit"]  # the code that runs, read before anything is loaded
     stored = None if replace else read_costs(out)

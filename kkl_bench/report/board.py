@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import pandas as pd
 
@@ -89,6 +90,12 @@ class Board:
     scaling_panel: Section | None = None
     every_cell: pd.DataFrame | None = None
     regeneration: dict | None = None
+
+    @cached_property
+    def paper_trainings(self) -> pd.DataFrame:
+        """Every training of the paper track's fits (:func:`trainings.training_records`),
+        read once for the cost section and every track's."""
+        return trainings.training_records(self.results)
 
 
 SMOKE_BANNER = (
@@ -380,7 +387,7 @@ def cost_finding(costs: pd.DataFrame) -> str:
 
 def cost_section(board: Board) -> Section:
     blocks: list = [Text(COST_TEXT + cost_source(board.costs)), cost_table(board.summary)]
-    diverged = trainings.diverged_sentence(trainings.training_records(board.results))
+    diverged = trainings.diverged_sentence(board.paper_trainings)
     if diverged:
         blocks.append(Text(diverged))
     if board.costs is not None and not board.costs.empty:

@@ -283,16 +283,16 @@ def provenance_sections(board: Board) -> list[Section]:
             cell=lambda frame: "`" + frame["cell"] + "`"
         )
         checked.append(Table(latest, VERDICT_COLUMNS, id="verification"))
+    made_by = (
+        regeneration_sentence(board.regeneration, len(cells)),
+        training_commit_sentence(cells),
+    )
     return [
         Section("Provenance", [Table(versions, id="provenance")]),
         Section(
             "Reproduce",
             [
-                Text(
-                    regeneration_sentence(board.regeneration, len(cells))
-                    + " "
-                    + training_commit_sentence(cells)
-                ),
+                Text(" ".join(sentence for sentence in made_by if sentence)),
                 Text(RUNS_TEXT),
                 Table(board.runs, RUN_COLUMNS, id="runs"),
                 *listed,

@@ -234,8 +234,7 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
         ]
     diverged = trainings.diverged_sentence(
         trainings.own_records(
-            trainings.training_records(board.tables.cells[name]),
-            trainings.training_records(board.results),
+            trainings.training_records(board.tables.cells[name]), board.paper_trainings
         ),
         "trainings of this track's fits not shared with the paper track",
     )

@@ -20,7 +20,7 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -77,13 +77,16 @@ def _meter_folder(folder: Path, key: str) -> Path:
 
 
 @contextlib.contextmanager
-def metered(folder: Path, key: str, every_s: float = METER_EVERY_S) -> Iterator[None]:
+def metered(
+    folder: Path, key: str, every_s: float = METER_EVERY_S
+) -> Iterator[Callable[[], dict[str, float]]]:
     """Keep a meter of the job ``key`` in ``folder`` while the block runs: every
     ``every_s`` seconds its processor seconds (this process's, which runs one job at a
     time) and wall seconds so far are written, under a lock held until the block ends;
     the meter is removed when it ends, however it ends. What a killed process's meter
     holds is added to the job's times when the job next finishes
-    (:func:`interrupted_times`)."""
+    (:func:`interrupted_times`). Yields the function that reads the times so far
+    (``{"seconds", "wall_seconds"}``, s)."""
     start_cpu, start = time.process_time(), time.perf_counter()
     attempt = f"{socket.gethostname()}-{os.getpid()}-{time.time_ns()}"
     path = _meter_folder(folder, key) / f"{attempt}.json"
@@ -92,23 +95,22 @@ def metered(folder: Path, key: str, every_s: float = METER_EVERY_S) -> Iterator[
     lock = FileLock(path.with_suffix(".lock"))
     stopped = threading.Event()
 
-    def write() -> None:
-        spent = {
+    def spent() -> dict[str, float]:
+        return {
             "seconds": time.process_time() - start_cpu,
             "wall_seconds": time.perf_counter() - start,
         }
-        _write_atomically(path, spent)
 
     def beat() -> None:
         while not stopped.wait(every_s):
-            write()
+            _write_atomically(path, spent())
 
     with lock:
-        write()
+        _write_atomically(path, spent())
         beat_thread = threading.Thread(target=beat, name=f"meter {key}", daemon=True)
         beat_thread.start()
         try:
-            yield
+            yield spent
         finally:
             stopped.set()
             beat_thread.join()

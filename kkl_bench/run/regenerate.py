@@ -22,7 +22,6 @@ the board's Reproduce section reads them.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -200,15 +199,14 @@ def _scoring_seconds(cell, task) -> float:
     return per_step * 1e-6 * cell.n_test * samples
 
 
-def _timed_job(spec: RunSpec, job: Job, key: str) -> tuple[JobOutcome, float, float]:
+def _timed_job(spec: RunSpec, job: Job, key: str) -> tuple[JobOutcome, dict[str, float]]:
     """:func:`~kkl_bench.run.harness.run_job` on one thread, metered under ``key`` in the
-    target folder, with the processor time it took (s: the core-seconds it used,
-    whatever else shares the machine, waits for another job's model or pauses) and its
-    wall time (s)."""
-    start, start_cpu = time.perf_counter(), time.process_time()
-    with metered(spec.results_dir, key):
+    target folder, with the times it took (:func:`~kkl_bench.run.ledger.metered`:
+    ``seconds``, the processor time, the core-seconds it used whatever else shares the
+    machine, waits for another job's model or pauses; ``wall_seconds``)."""
+    with metered(spec.results_dir, key) as spent:
         outcome = harness.run_job(spec, job)  # on one thread (kkl_bench.support.executors)
-    return outcome, time.process_time() - start_cpu, time.perf_counter() - start
+        return outcome, spent()
 
 
 def run(
@@ -225,17 +223,14 @@ def run(
     ``progress(planned_job, outcome)`` after each. Returns the ledger."""
     by_job = {planned_job.job: planned_job for planned_job in planned.jobs}
     arguments = [(p.spec, p.job, p.key) for p in planned.jobs]
-    for outcome, seconds, wall in execute(_timed_job, arguments, jobs, executor, scheduler):
+    for outcome, times in execute(_timed_job, arguments, jobs, executor, scheduler):
         planned_job = by_job[outcome.job]
         failed = sum(cell.status == "error" for cell in outcome.scored)
         earlier = interrupted_times(into, planned_job.key)
         record_job(
             into,
             planned_job.key,
-            {
-                "seconds": seconds + earlier["seconds"],
-                "wall_seconds": wall + earlier["wall_seconds"],
-            },
+            {name: seconds + earlier[name] for name, seconds in times.items()},
             planned_job.estimate_s,
             len(outcome.scored),
             failed,
