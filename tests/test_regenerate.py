@@ -137,8 +137,9 @@ def test_a_killed_job_s_meter_counts_once_and_a_live_one_is_left(tmp_path):
         killed = _metered_child(tmp_path, key)
         killed.kill()
         killed.wait()
+        banked = ledger.banked_seconds(tmp_path, key)  # read, left in place
         spent = ledger.interrupted_times(tmp_path, key)
-        assert 0.3 <= spent["seconds"] < 1.0
+        assert 0.3 <= spent["seconds"] < 1.0 and spent["seconds"] == banked
         assert spent["wall_seconds"] >= spent["seconds"] + 0.05  # its sleep, metered
         assert ledger.interrupted_times(tmp_path, key)["seconds"] == 0.0  # counted once
         assert len(list(tmp_path.glob(f"{ledger.METER_FOLDER}/*/*.json"))) == 1  # the live one
@@ -154,7 +155,11 @@ def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, t
     meters = ledger._meter_folder(into, first)
     meters.mkdir(parents=True)  # what a killed attempt of the first job left
     (meters / "elsewhere-1-1.json").write_text('{"seconds": 1000.0, "wall_seconds": 2000.0}')
-    jobs = regenerate.run(planned, into)["jobs"]
+    resumed = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
+    assert [job.banked_s for job in resumed.jobs] == [1000.0, 0.0]
+    assert resumed.jobs[0].work_done_s == resumed.jobs[0].estimate_s  # at most its estimate
+    assert "1 of the fits resume killed attempts, which spent 0.28 core-hours" in resumed.describe()
+    jobs = regenerate.run(resumed, into)["jobs"]
     assert 1000 < jobs[first]["seconds"] < 1100 and 2000 < jobs[first]["wall_seconds"] < 2100
     other = planned.jobs[1].key
     assert jobs[other]["seconds"] < 100

@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from kkl_bench.cli.common import add_cache_argument, add_jobs_argument
-from kkl_bench.cli.run import RESUME, showing_jobs
+from kkl_bench.cli.run import BAR, RESUME, showing_jobs
 from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile
@@ -87,10 +87,13 @@ def regenerate_command(args: argparse.Namespace) -> int:
     with (
         tqdm(
             total=round(planned.estimate_s),
+            initial=round(sum(p.work_done_s for p in planned.jobs)),
             unit="s",
             desc="regenerate (estimated work)",
             dynamic_ncols=True,
             mininterval=1.0,
+            smoothing=0.0,  # the time left from this invocation's average rate
+            bar_format=BAR,
         ) as bar,
         showing_jobs(bar, args.into / ".claims" / profile.name),
     ):
@@ -98,7 +101,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
         def progress(planned_job, outcome):
             nonlocal failed
             failed += sum(cell.status == "error" for cell in outcome.scored)
-            bar.update(round(planned_job.estimate_s))
+            bar.update(round(planned_job.estimate_s - planned_job.work_done_s))
 
         try:
             written = regenerate.run(

@@ -123,7 +123,28 @@ def metered(
 def interrupted_times(folder: Path, key: str) -> dict[str, float]:
     """The seconds (processor and wall) that killed attempts of the job ``key`` spent, read
     from their meters (those no live process holds), which are then removed."""
-    total = {"seconds": 0.0, "wall_seconds": 0.0}
+    total, removed = {"seconds": 0.0, "wall_seconds": 0.0}, []
+    for path, spent in _killed_meters(folder, key):
+        for name in total:
+            total[name] += float(spent.get(name, 0.0))
+        path.unlink()
+        removed.append(path)
+    for path in removed:  # their locks, released
+        path.with_suffix(".lock").unlink(missing_ok=True)
+    with contextlib.suppress(OSError):  # gone, or another attempt's meter is in it
+        _meter_folder(folder, key).rmdir()
+    return total
+
+
+def banked_seconds(folder: Path, key: str) -> float:
+    """Processor seconds that killed attempts of the job ``key`` spent (their meters, left
+    in place): the work a resumed job does not do again."""
+    return sum(float(spent.get("seconds", 0.0)) for _, spent in _killed_meters(folder, key))
+
+
+def _killed_meters(folder: Path, key: str) -> Iterator[tuple[Path, dict[str, float]]]:
+    """Each meter of the job ``key`` that no live process holds, with what it holds; the
+    meter's lock is held while the caller handles it."""
     for path in sorted(_meter_folder(folder, key).glob("*.json")):
         lock = FileLock(path.with_suffix(".lock"))
         try:
@@ -131,16 +152,9 @@ def interrupted_times(folder: Path, key: str) -> dict[str, float]:
         except Timeout:
             continue  # its job is still running
         try:
-            spent = json.loads(path.read_text())
-            for name in total:
-                total[name] += float(spent.get(name, 0.0))
-            path.unlink()
+            yield path, json.loads(path.read_text())
         finally:
             lock.release()
-        path.with_suffix(".lock").unlink(missing_ok=True)
-    with contextlib.suppress(OSError):  # gone, or another attempt's meter is in it
-        _meter_folder(folder, key).rmdir()
-    return total
 
 
 def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:

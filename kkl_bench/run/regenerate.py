@@ -21,6 +21,7 @@ the board's Reproduce section reads them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -33,7 +34,13 @@ from kkl_bench import variants
 from kkl_bench.protocol import DT
 from kkl_bench.run import harness
 from kkl_bench.run.harness import Job, JobOutcome, RunSpec
-from kkl_bench.run.ledger import interrupted_times, metered, read_ledger, record_job
+from kkl_bench.run.ledger import (
+    banked_seconds,
+    interrupted_times,
+    metered,
+    read_ledger,
+    record_job,
+)
 from kkl_bench.suite.task import Profile
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.executors import execute
@@ -41,12 +48,20 @@ from kkl_bench.support.executors import execute
 
 @dataclass(frozen=True)
 class PlannedJob:
-    """One harness job of a regeneration, with the spec of its row's run and its
-    estimated wall time (s, one thread)."""
+    """One harness job of a regeneration, with the spec of its row's run, its estimated
+    wall time (s, one thread) and the processor seconds its killed attempts already spent
+    (:func:`~kkl_bench.run.ledger.banked_seconds`)."""
 
     spec: RunSpec
     job: Job
     estimate_s: float
+    banked_s: float = 0.0
+
+    @property
+    def work_done_s(self) -> float:
+        """The share of its estimate done before this invocation (its banked seconds, at
+        most the estimate): a resumed training continues from its checkpoint."""
+        return min(self.banked_s, self.estimate_s)
 
     @property
     def key(self) -> str:
@@ -85,6 +100,12 @@ class Plan:
             f"  {row}: {rows[row]} fits, {seconds / 3600:.2f} core-hours"
             for row, seconds in sorted(by_row.items(), key=lambda item: -item[1])
         ]
+        resumed = [planned for planned in self.jobs if planned.banked_s > 0]
+        if resumed:
+            lines.append(
+                f"{len(resumed)} of the fits resume killed attempts, which spent "
+                f"{sum(p.banked_s for p in resumed) / 3600:.2f} core-hours"
+            )
         return "\n".join(lines)
 
 
@@ -133,7 +154,9 @@ def plan(
             tasks = tuple(t for t in job.tasks if (job.estimator, t.id, job.seed) in wanted)
             if tasks:
                 job = Job(job.estimator, job.system, tasks, job.seed)
-                jobs.append(PlannedJob(spec, job, known.seconds(job)))
+                planned_job = PlannedJob(spec, job, known.seconds(job))
+                banked = banked_seconds(into, planned_job.key)
+                jobs.append(dataclasses.replace(planned_job, banked_s=banked))
     return Plan(jobs, len(wanted), done)
 
 
