@@ -7,6 +7,7 @@ import pandas as pd
 from kkl_bench.cli import main
 from kkl_bench.protocol import N_SAMPLES
 from kkl_bench.run import fit_times
+from kkl_bench.run.results import training_seconds
 
 
 def cell(estimator, seed, spent_s, us_per_step, status="ok", n_test=5):
@@ -72,3 +73,11 @@ def test_the_bar_counts_every_fit_of_a_system_fitted_per_task(tmp_path, capsys):
     assert main([*argv, *regimes, "--results", str(tmp_path)]) == 0
     error = capsys.readouterr().err
     assert "2 fits of ekf making 2 cells" in error and "100%" in error
+
+
+def test_a_training_counts_its_processor_time_on_the_cpu_and_its_wall_time_elsewhere():
+    times = {"steps": 10, "seconds": 30.0, "processor_seconds": 12.0}
+    assert training_seconds({"spent": {"phase1": {**times, "device": "cpu"}}}) == 12.0
+    assert training_seconds({"spent": {"phase1": {**times, "device": "cuda"}}}) == 30.0
+    before = {"steps": 10, "seconds": 30.0, "device": "cpu"}  # recorded no processor time
+    assert training_seconds({"spent": {"phase1": before, "phase2": {"steps": 0}}}) == 30.0

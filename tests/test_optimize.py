@@ -1,4 +1,4 @@
-"""The training loop's ledger: steps, samples and wall time, across a resume."""
+"""The training loop's ledger: steps, samples, wall and processor time, across a resume."""
 
 import types
 
@@ -17,9 +17,11 @@ class Interrupted(Exception):
 
 @pytest.fixture
 def clock(monkeypatch):
-    """A wall clock that moves only when a loss is evaluated: one second per step."""
-    now = types.SimpleNamespace(value=0.0)
+    """Clocks that move only when a loss is evaluated: one second of wall time per step
+    (``value``), half a second of processor time (``processor``)."""
+    now = types.SimpleNamespace(value=0.0, processor=0.0)
     monkeypatch.setattr(optimize.time, "perf_counter", lambda: now.value)
+    monkeypatch.setattr(optimize.time, "process_time", lambda: now.processor)
     return now
 
 
@@ -31,6 +33,7 @@ def train(cache_dir, clock, steps, interrupt_at=None):
         if step == interrupt_at:
             raise Interrupted
         clock.value += 1.0
+        clock.processor += 0.5
         return ((parameter - 1.0) ** 2).sum()
 
     generator = torch.Generator().manual_seed(0)
@@ -41,12 +44,13 @@ def train(cache_dir, clock, steps, interrupt_at=None):
     return spent
 
 
-def test_the_ledger_counts_steps_samples_and_wall_time(tmp_path, clock):
+def test_the_ledger_counts_steps_samples_wall_and_processor_time(tmp_path, clock):
     spent = train(tmp_path, clock, steps=10)
     assert spent.as_dict() == {
         "steps": 20,
         "samples": 60,
         "seconds": 20.0,
+        "processor_seconds": 10.0,
         "device": "cpu",
         "git_commit": provenance()["git_commit"],
     }
@@ -63,7 +67,7 @@ def test_a_resumed_training_counts_the_time_spent_before_the_interruption(tmp_pa
     clock.value += 1000.0  # the machine sat idle between the kill and the rerun
     spent = train(tmp_path, clock, steps=10)
     # 10 s of the first call and 4 of the second before the checkpoint, 6 after the resume
-    assert spent.seconds == 20.0
+    assert (spent.seconds, spent.processor_seconds) == (20.0, 10.0)
     assert (spent.steps, spent.samples) == (20, 60)
 
 
@@ -233,3 +237,16 @@ def test_the_convergence_rule_reads_the_second_half(curve, expected):
 )
 def test_each_training_is_judged_yes_no_or_diverged(curve, expected):
     assert convergence.outcome(curve) == expected
+
+
+def test_a_pause_counts_in_the_wall_time_only(clock):
+    parameter = torch.nn.Parameter(torch.zeros(1))
+
+    def loss(step):
+        clock.value += 1000.0 if step == 3 else 1.0  # stopped (SIGSTOP) for 999 s at step 3
+        clock.processor += 0.5
+        return ((parameter - 1.0) ** 2).sum()
+
+    with optimize.counting() as spent:
+        optimize.minimize(loss, [parameter], 10, samples_per_step=1)
+    assert (spent.seconds, spent.processor_seconds) == (1009.0, 5.0)

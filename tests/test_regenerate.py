@@ -176,3 +176,11 @@ def test_the_board_says_how_many_of_its_cells_the_regeneration_wrote(published, 
     part = regeneration_sentence(summary, 12)
     assert "5 of the 12 cells (the others' runs are listed below), by 2 fits" in part
     assert "not written by `kkl-bench regenerate`" in regeneration_sentence(None, 12)
+
+
+def test_a_job_scoring_many_tasks_keeps_a_meter_of_its_own(tmp_path):
+    tasks = [f"noise/duffing/constant-sigma0.{i:03d}@v1" for i in range(30)]
+    first, second = (f"autonomous_kkl duffing seed0 [{','.join(tasks[i:])}]" for i in (0, 1))
+    with ledger.metered(tmp_path, first), ledger.metered(tmp_path, second):
+        assert len(list(tmp_path.glob(f"{ledger.METER_FOLDER}/*/*.json"))) == 2
+    assert ledger.interrupted_times(tmp_path, first) == {"seconds": 0.0, "wall_seconds": 0.0}

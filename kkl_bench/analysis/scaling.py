@@ -4,7 +4,7 @@ On Lorenz-96 with ``n = 5, 10, ..., 160`` states (:data:`SIZES`; the ``more-syst
 per estimator:
 
 * the RMSE, from the track's cells in the results store (means over the four
-  regimes and the training seeds), and the fit time: the wall time of every
+  regimes and the training seeds), and the fit time: the time of every
   training the fit used, wherever it ran (:func:`~kkl_bench.run.results.training_seconds`; a KKL
   observer's shared Phase 1 counts in each KKL row);
 * the online cost, microseconds per trajectory-step of ``estimate`` at a batch
@@ -33,7 +33,7 @@ import pandas as pd
 
 from kkl_bench import families
 from kkl_bench.analysis.summary import summary_table
-from kkl_bench.run.results import training_seconds
+from kkl_bench.run.results import mean_fit_seconds
 from kkl_bench.support import convergence
 from kkl_bench.systems.lorenz96 import SIZES
 
@@ -130,7 +130,7 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
                 "reason": None if failed.empty else _last_line(failed["error"].iloc[0]),
                 "rmse": ok["rmse_mean"].mean() if failed.empty else math.nan,
                 "nrmse": ok["nrmse_mean"].mean() if failed.empty else math.nan,
-                "fit_time_s": _fit_seconds(of) if failed.empty else math.nan,
+                "fit_time_s": mean_fit_seconds(of) if failed.empty else math.nan,
                 "converged": convergence.worst(cells["converged"]),
                 "overwrite": False,
             }
@@ -211,19 +211,6 @@ def _lorenz96_cells(
     """The track's cells of Lorenz-96 at ``sizes``, and each size's system name -> n."""
     wanted = {system_name(n): n for n in sizes}
     return results[(results.get("track") == TRACK) & results["system"].isin(wanted)], wanted
-
-
-def _fit_seconds(cells: pd.DataFrame) -> float:
-    """Mean over ``cells`` (one estimator on one system) of :func:`~kkl_bench.run.results.training_seconds`, or of
-    the fit's wall time where the estimator does not train."""
-    reports = cells["fit_report"] if "fit_report" in cells else pd.Series([None] * len(cells))
-    seconds = [
-        trained if trained is not None else wall
-        for trained, wall in zip(
-            (training_seconds(report) for report in reports), cells["fit_time_s"], strict=True
-        )
-    ]
-    return float(np.mean(seconds))
 
 
 def _status(failed: pd.DataFrame) -> str:

@@ -20,7 +20,7 @@ import pandas as pd
 from kkl_bench import families, variants
 from kkl_bench.analysis.significance import MARGIN, mark_column
 from kkl_bench.protocol.streams import PAPER_TRACK
-from kkl_bench.run.results import mean_and_std
+from kkl_bench.run.results import mean_and_std, mean_fit_seconds
 from kkl_bench.suite.tracks import find_track
 from kkl_bench.support import convergence
 
@@ -162,7 +162,7 @@ def summary_table(
                 "smape_mean": smape_mean,
                 "smape_seed_std": smape_std,
                 "nrmse_mean": _seed_mean_and_std([mean_and_std(v)[0] for v in scored["nrmse"]])[0],
-                "fit_time_s": scored["fit_time_s"].mean(),
+                "fit_time_s": mean_fit_seconds(scored),
                 "estimate_us_per_step": scored["estimate_us_per_step"].mean(),
                 "rmse_median": float(np.median(pooled)) if pooled else math.nan,
                 "settling_median_s": float(np.median(settling)) if settling else math.nan,

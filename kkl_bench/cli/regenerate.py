@@ -27,7 +27,7 @@ def add_parser(commands) -> None:
         "--estimator, --track, --system), print the plan and its estimated core-hours, then "
         "compute the cells into --into, each row as `kkl-bench run` of that row makes it. "
         "Rerun the same command to resume: finished cells are skipped and a killed training "
-        f"continues from its checkpoint. Each fit's wall time goes to --into/"
+        f"continues from its checkpoint. Each fit's processor time goes to --into/"
         f"{ledger.LEDGER_FILE}; `kkl-bench publish --results INTO` states the core-hours.",
     )
     parser.add_argument(

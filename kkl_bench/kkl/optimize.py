@@ -47,15 +47,17 @@ CHECKPOINT_EVERY = 500
 
 @dataclass
 class Spent:
-    """Training effort: optimizer steps, the training samples they drew, and wall time.
+    """Training effort: optimizer steps, the training samples they drew, and time.
 
     A *sample* is one example a loss evaluates: a (state, latent) pair, a
     PDE collocation point or an (input window, state) pair. ``device`` is where the
     training ran (:mod:`kkl_bench.support.devices`). ``seconds`` is the
-    wall time of the :func:`counting` block (data simulation included); a block
+    wall time of the :func:`counting` block (data simulation included) and
+    ``processor_seconds`` the processor time this process spent in it (its core-seconds:
+    on one thread, unaffected by other load on the machine or a pause); a block
     inside a :func:`resumable` one that resumed from a checkpoint also counts the
-    time the interrupted run had spent up to that checkpoint, so it reads as the
-    wall time of the uninterrupted training. ``git_commit`` is the commit of the code that
+    times the interrupted run had spent up to that checkpoint, so both read as those of
+    the uninterrupted training. ``git_commit`` is the commit of the code that
     trained (``-dirty`` from a modified tree; :func:`kkl_bench.support.provenance.provenance`): it is
     stored with the model, so a cell scored from a cached model records which code trained
     it beside the commit that scored it.
@@ -64,6 +66,7 @@ class Spent:
     steps: int = 0
     samples: int = 0
     seconds: float = 0.0
+    processor_seconds: float = 0.0
     device: str = "cpu"
     git_commit: str | None = field(default_factory=lambda: provenance()["git_commit"])
 
@@ -72,6 +75,7 @@ class Spent:
             "steps": self.steps,
             "samples": self.samples,
             "seconds": self.seconds,
+            "processor_seconds": self.processor_seconds,
             "device": self.device,
             "git_commit": self.git_commit,
         }
@@ -124,18 +128,31 @@ _LEDGERS: ContextVar[tuple[Spent, ...]] = ContextVar("kkl_bench_ledgers", defaul
 @contextmanager
 def counting() -> Iterator[Spent]:
     """Count what every :func:`minimize` inside the block spends (nested blocks each count),
-    and the block's wall time."""
+    and the block's wall and processor time."""
     spent = Spent()
     token = _LEDGERS.set((*_LEDGERS.get(), spent))
     resume = _RESUME.get()
-    credit = resume.credit if resume else 0.0
-    start = time.perf_counter()
+    credit = dict(resume.credit) if resume else dict.fromkeys(CLOCKS, 0.0)
+    start = _clocks()
     try:
         yield spent
     finally:
-        credited = (resume.credit if resume else 0.0) - credit
-        spent.seconds = time.perf_counter() - start + credited
+        now = _clocks()
+        taken = {
+            name: now[name] - start[name] + (resume.credit[name] if resume else 0.0) - credit[name]
+            for name in CLOCKS
+        }
+        spent.seconds, spent.processor_seconds = taken["seconds"], taken["processor_seconds"]
         _LEDGERS.reset(token)
+
+
+CLOCKS = ("seconds", "processor_seconds")
+"""The times a training records (:class:`Spent`): wall and this process's processor time."""
+
+
+def _clocks() -> dict[str, float]:
+    """Each of :data:`CLOCKS` read now (s)."""
+    return {"seconds": time.perf_counter(), "processor_seconds": time.process_time()}
 
 
 @dataclass
@@ -148,12 +165,13 @@ class _Resume:
     every: int
     calls: int = 0
     written: list[dict[str, Any]] = field(default_factory=list)
-    credit: float = 0.0
-    """s added to the block's wall time: what the interrupted run had spent before the
-    checkpoint it resumed from, less the time this run took to get back there."""
+    credit: dict[str, float] = field(default_factory=lambda: dict.fromkeys(CLOCKS, 0.0))
+    """s added to the block's times (each of :data:`CLOCKS`): what the interrupted run had
+    spent before the checkpoint it resumed from, less what this run took to get back
+    there."""
 
     def __post_init__(self) -> None:
-        self.started = time.perf_counter()
+        self.started = _clocks()
 
     SLOTS = (0, 1)
     """Checkpoints alternate between two slots, so a kill while one is written
@@ -166,9 +184,11 @@ class _Resume:
         self.written += [{**call, "slot": slot} for slot in self.SLOTS]
         return call
 
-    def elapsed(self) -> float:
-        """s of training behind the block's current state, as an uninterrupted run."""
-        return time.perf_counter() - self.started + self.credit
+    def elapsed(self) -> dict[str, float]:
+        """The times (s, each of :data:`CLOCKS`) of training behind the block's current
+        state, as an uninterrupted run."""
+        now = _clocks()
+        return {name: now[name] - self.started[name] + self.credit[name] for name in CLOCKS}
 
     def save(self, call, step, parameters, optimizer, schedule, training) -> None:
         self.cache.save(
@@ -182,7 +202,7 @@ class _Resume:
                 "losses": list(training.losses),
                 "validation": list(training.validation),
                 "generators": [g.get_state() for g in self.generators],
-                "seconds": self.elapsed(),
+                **self.elapsed(),
             },
         )
 
@@ -209,8 +229,10 @@ class _Resume:
         schedule.load_state_dict(stored["schedule"])
         for generator, state in zip(self.generators, stored["generators"], strict=True):
             generator.set_state(state)
-        if "seconds" in stored:  # written by a version that timed its checkpoints
-            self.credit += stored["seconds"] - self.elapsed()
+        elapsed = self.elapsed()
+        for name in CLOCKS:  # each time the checkpoint's version recorded
+            if name in stored:
+                self.credit[name] += stored[name] - elapsed[name]
         validation = [tuple(point) for point in stored.get("validation", [])]
         return stored["step"], Training(list(stored["losses"]), validation)
 

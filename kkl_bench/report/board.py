@@ -311,13 +311,15 @@ steps and samples are counted in every KKL row but spent once. The second
 phase is the estimator's own training (hypernetwork, injection network,
 curriculum or decoder adaptation). A *sample* is one example a loss
 evaluates (a state-latent pair, a PDE collocation point, an input window
-with its state). Fit times are the wall times of each fit where it ran
-(they depend on the machine and on how many jobs ran beside it). Trained
-networks are cached and shared: Phase 1 counts in the fit time of the first
-KKL estimator that trained it, and a variant that changes only how trained
-networks are used online (such as `[guard=True]`) shows only the time to load
-them; a fit resumed from its checkpoints after an interruption shows only
-the time since it resumed. Converged (protocol 6.5, read from each training's
+with its state). Fit times are those of the trainings each fit used, stored
+with the trained models (protocol section 5), so a model loaded from the
+cache counts as long as it took to train: Phase 1 counts in every KKL row, as
+its steps do, and a variant that only uses trained networks differently online
+(such as `[guard=True]`) shows the time its networks took. A training on the
+CPU counts its processor seconds (one thread a fit, whatever else ran on the
+machine), one on a GPU or from before processor times were recorded its wall
+seconds, and a fit that trains nothing its wall time; all depend on the
+machine. Converged (protocol 6.5, read from each training's
 record): `yes` when the plateau rule stopped every training, `no` when one
 reached its cap of steps, `diverged` when one's validation error was not
 finite; a training from before the rule reads `yes` when its curve had

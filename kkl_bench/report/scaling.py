@@ -98,7 +98,8 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
             Text(
                 f"Lorenz-96 at n = {', '.join(map(str, sizes))} (track `{TRACK}`, profile "
                 f"`{profile}`). RMSE and fit time: means over the four regimes and the training "
-                "seeds. Fit time: the wall time of every training the fit used, wherever it ran "
+                "seeds. Fit time: the time of every training the fit used, wherever it ran "
+                "(processor time on a CPU, wall time on a GPU; protocol section 5) "
                 "(stored with each trained model, so a KKL observer's shared Phase 1 counts in "
                 "every KKL row; '-' for a model trained before training times were recorded). "
                 "Converged: whether every training's validation curve had flattened (protocol "

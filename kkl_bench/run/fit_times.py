@@ -21,7 +21,7 @@ from pathlib import Path
 import pandas as pd
 
 from kkl_bench.protocol import N_SAMPLES
-from kkl_bench.run.results import load_results, training_seconds
+from kkl_bench.run.results import fit_seconds, load_results
 
 SHIPPED = "fit-times.csv"
 KEY = ["profile", "estimator", "system"]
@@ -36,12 +36,7 @@ def measure(results: pd.DataFrame) -> pd.DataFrame:
     cells = results[results["status"] == "ok"].copy() if not results.empty else results
     if cells.empty:
         return pd.DataFrame(columns=COLUMNS)
-    cells["train_s"] = [
-        trained if trained else float(fit)  # a fit that trains nothing: its fit time
-        for trained, fit in zip(
-            map(training_seconds, cells["fit_report"]), cells["fit_time_s"], strict=True
-        )
-    ]
+    cells["train_s"] = list(map(fit_seconds, cells["fit_report"], cells["fit_time_s"]))
     cells["score_s"] = cells["estimate_us_per_step"] * 1e-6 * cells["n_test"] * N_SAMPLES
     cells["commit"] = [str(record.get("git_commit")) for record in cells["provenance"]]
     fits = cells.groupby([*KEY, "seed"], sort=False).agg(

@@ -15,6 +15,7 @@ meter period per kill goes uncounted.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import socket
@@ -71,9 +72,12 @@ def _write_atomically(path: Path, record: dict[str, Any]) -> None:
 
 
 def _meter_folder(folder: Path, key: str) -> Path:
-    """Where the meters of the job ``key`` live (one folder a job, named from its key)."""
-    name = "".join(c if c.isalnum() or c in "-_.@" else "_" for c in key)
-    return Path(folder) / METER_FOLDER / name
+    """Where the meters of the job ``key`` live: one folder a job, named by the start of
+    its key and a digest of all of it (a job scoring many tasks has a key longer than a
+    file name may be)."""
+    readable = "".join(c if c.isalnum() or c in "-_.@" else "_" for c in key)[:80]
+    digest = hashlib.sha256(key.encode()).hexdigest()[:16]
+    return Path(folder) / METER_FOLDER / f"{readable}-{digest}"
 
 
 @contextlib.contextmanager

@@ -41,6 +41,7 @@ from kkl_bench.run.ledger import (
     read_ledger,
     record_job,
 )
+from kkl_bench.run.results import recorded_seconds
 from kkl_bench.suite.task import Profile
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.executors import execute
@@ -197,19 +198,24 @@ class _CostRecords:
 
 
 def phase_seconds(cell) -> dict[str, float]:
-    """The wall time each phase of the fit behind ``cell`` trained for (``fit_report``'s
-    ``spent``, stored with the models); a fit that trained nothing, its fit time."""
+    """The time each phase of the fit behind ``cell`` trained for (``fit_report``'s
+    ``spent``, stored with the models: :func:`~kkl_bench.run.results.recorded_seconds`); a fit
+    that trained nothing, its fit time."""
     report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
     spent = report.get("spent") or {}
     phases = {
-        phase: float(record.get("seconds") or 0.0)
+        phase: _seconds_or_zero(recorded_seconds(record))
         for phase, record in spent.items()
         if isinstance(record, dict)
     }
     if any(phases.values()):
         return phases
-    fit = cell.fit_time_s
-    return {"fit": float(fit) if isinstance(fit, float) and math.isfinite(fit) else 0.0}
+    return {"fit": _seconds_or_zero(cell.fit_time_s)}
+
+
+def _seconds_or_zero(value: object) -> float:
+    """``value`` if a finite number of seconds, else 0 (nothing recorded)."""
+    return float(value) if isinstance(value, float | int) and math.isfinite(value) else 0.0
 
 
 def _scoring_seconds(cell, task) -> float:

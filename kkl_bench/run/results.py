@@ -310,15 +310,40 @@ def load_results(
 
 def training_seconds(report: object) -> float | None:
     """Seconds of every training a fit used, from its fit report's ``spent`` (each phase's
-    wall time, stored with the trained model, so a phase loaded from the cache counts as
-    long as it took to train). None if the report has no ``spent`` (the estimator does
-    not train); NaN if a phase that trained has no recorded time."""
+    :func:`recorded_seconds`, stored with the trained model, so a phase loaded from the cache
+    counts as long as it took to train). None if the report has no ``spent`` (the
+    estimator does not train); NaN if a phase that trained has no recorded time."""
     spent = report.get("spent") if isinstance(report, dict) else None
     if not spent:
         return None
     return sum(
-        phase.get("seconds", math.nan) if phase.get("steps", 0) else 0.0 for phase in spent.values()
+        recorded_seconds(phase) if phase.get("steps", 0) else 0.0 for phase in spent.values()
     )
+
+
+def fit_seconds(report: object, fit_time_s: float) -> float:
+    """The fit time a board shows for a cell (s): :func:`training_seconds` of its fit
+    report where the fit trained (so a model loaded from the cache counts as long as it
+    took to train, and a shared Phase 1 counts in every row that uses it; NaN if a phase
+    recorded no time), else ``fit_time_s``, the wall time of a fit that trains nothing."""
+    trained = training_seconds(report)
+    return trained if trained else float(fit_time_s)
+
+
+def mean_fit_seconds(cells: pd.DataFrame) -> float:
+    """Mean of :func:`fit_seconds` over ``cells`` (NaN for none)."""
+    reports = cells["fit_report"] if "fit_report" in cells else [None] * len(cells)
+    seconds = list(map(fit_seconds, reports, cells["fit_time_s"]))
+    return float(np.mean(seconds)) if seconds else math.nan
+
+
+def recorded_seconds(phase: dict) -> float:
+    """The time one training phase took (s; a record of a fit report's ``spent``): its
+    processor time where it trained on the CPU and recorded it (its core-seconds, whatever
+    else ran on the machine), else its wall time; NaN if it recorded neither."""
+    if phase.get("device", "cpu") == "cpu" and "processor_seconds" in phase:
+        return phase["processor_seconds"]
+    return phase.get("seconds", math.nan)
 
 
 def mean_and_std(values: list[float]) -> tuple[float, float]:
