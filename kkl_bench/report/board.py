@@ -244,7 +244,9 @@ def paper_sections(board: Board) -> list[Section]:
                     "Each of the paper's four methods against our row of the same name "
                     "(`static_hyperkkl`\nis the paper's observer, gain 1; our guarded variant "
                     "is `static_hyperkkl[guard=True]`).\nBelow 1: ours is lower. The paper's "
-                    "numbers come from its own test sets."
+                    "numbers come from its own test sets. What is known of why ours are lower, "
+                    "and what was measured (the paper's network sizes), is in `docs/protocol.md` "
+                    'section 6, "The board against the paper\'s numbers".'
                 ),
                 omitted if board.smoke else paper_comparison(summary),
             ],
