@@ -86,8 +86,8 @@ def regenerate_command(args: argparse.Namespace) -> int:
     failed = 0
     with (
         tqdm(
-            total=round(planned.estimate_s),
-            initial=round(sum(p.work_done_s for p in planned.jobs)),
+            total=planned.estimate_s,
+            initial=sum(p.work_done_s for p in planned.jobs),
             unit="s",
             desc="regenerate (estimated work)",
             dynamic_ncols=True,
@@ -101,7 +101,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
         def progress(planned_job, outcome):
             nonlocal failed
             failed += sum(cell.status == "error" for cell in outcome.scored)
-            bar.update(round(planned_job.estimate_s - planned_job.work_done_s))
+            bar.update(planned_job.estimate_s - planned_job.work_done_s)
 
         try:
             written = regenerate.run(
