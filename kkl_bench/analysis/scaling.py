@@ -5,7 +5,7 @@ per estimator:
 
 * the RMSE, from the track's cells in the results store (means over the four
   regimes and the training seeds), and the fit time: the time of every
-  training the fit used, wherever it ran (:func:`~kkl_bench.run.results.training_seconds`; a KKL
+  training the fit used, wherever it ran (:func:`~kkl_bench.run.results.fit_seconds`; a KKL
   observer's shared Phase 1 counts in each KKL row);
 * the online cost, microseconds per trajectory-step of ``estimate`` at a batch
   of 20 trajectories and of 1, measured here side by side in one run: every
@@ -98,8 +98,9 @@ def cell_summary(results: pd.DataFrame, sizes: Sequence[int] = SIZES) -> pd.Data
     cells of but none of this estimator, or not of every regime the results hold; else
     ``error``), reason (what the first cell
     not scored says: the unsupported reason, or the error's last line), rmse, nrmse,
-    fit_time_s (:func:`~kkl_bench.run.results.training_seconds`, else the fit's wall time for an estimator
-    that does not train; NaN for a model trained before training times were recorded)
+    fit_time_s (:func:`~kkl_bench.run.results.mean_fit_seconds`: the trainings' recorded
+    times, else the fit's wall time for an estimator that does not train; NaN for a model
+    trained before training times were recorded)
     and converged (:func:`kkl_bench.support.convergence.worst` of its cells).
     """
     track, wanted = _lorenz96_cells(results, sizes)

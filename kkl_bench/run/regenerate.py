@@ -21,7 +21,6 @@ the board's Reproduce section reads them.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -66,9 +65,13 @@ class PlannedJob:
 
     @property
     def key(self) -> str:
-        """The job's name in the ledger: row, system, seed and its tasks' ids."""
-        tasks = ",".join(task.id for task in self.job.tasks)
-        return f"{self.job.estimator} {self.job.system} seed{self.job.seed} [{tasks}]"
+        return job_key(self.job)
+
+
+def job_key(job: Job) -> str:
+    """A job's name in the ledger: row, system, seed and its tasks' ids."""
+    tasks = ",".join(task.id for task in job.tasks)
+    return f"{job.estimator} {job.system} seed{job.seed} [{tasks}]"
 
 
 @dataclass(frozen=True)
@@ -155,9 +158,8 @@ def plan(
             tasks = tuple(t for t in job.tasks if (job.estimator, t.id, job.seed) in wanted)
             if tasks:
                 job = Job(job.estimator, job.system, tasks, job.seed)
-                planned_job = PlannedJob(spec, job, known.seconds(job))
-                banked = banked_seconds(into, planned_job.key)
-                jobs.append(dataclasses.replace(planned_job, banked_s=banked))
+                banked = banked_seconds(into, job_key(job))
+                jobs.append(PlannedJob(spec, job, known.seconds(job), banked))
     return Plan(jobs, len(wanted), done)
 
 
