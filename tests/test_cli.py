@@ -1,12 +1,16 @@
 """The command line: smoke runs, the leaderboard, and clear errors on bad input."""
 
+import io
 import json
+import warnings
 
 import numpy as np
 import pandas as pd
 import pytest
+from tqdm import tqdm
 
 from kkl_bench.cli import main, recorded_command
+from kkl_bench.cli.run import BAR, advance
 from kkl_bench.estimator import Estimator
 from kkl_bench.registry import estimators
 from kkl_bench.testing import check_estimator
@@ -352,3 +356,12 @@ def test_a_system_on_no_track_is_refused_with_the_track_file_to_write(capsys, mo
 def test_a_system_on_another_track_is_pointed_to_it(capsys):
     assert main(["run", "--estimator", "ekf", "--system", "chua"]) == 2
     assert "chua is on track(s) more-systems: pass --track more-systems" in capsys.readouterr().err
+
+
+def test_the_progress_bar_stops_at_its_total_when_the_shares_sum_above_it():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # tqdm warns when it clamps a share above 100 %
+        with tqdm(total=0.3, file=io.StringIO(), bar_format=BAR, mininterval=0) as bar:
+            for share in (0.1, 0.2):  # 0.1 + 0.2 > 0.3 in floating point
+                advance(bar, share)
+            assert bar.n == bar.total

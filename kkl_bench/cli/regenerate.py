@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from kkl_bench.cli.common import add_cache_argument, add_jobs_argument
-from kkl_bench.cli.run import BAR, RESUME, showing_jobs
+from kkl_bench.cli.run import BAR, RESUME, advance, showing_jobs
 from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile
@@ -101,7 +101,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
         def progress(planned_job, outcome):
             nonlocal failed
             failed += sum(cell.status == "error" for cell in outcome.scored)
-            bar.update(planned_job.estimate_s - planned_job.work_done_s)
+            advance(bar, planned_job.estimate_s - planned_job.work_done_s)
 
         try:
             written = regenerate.run(

@@ -168,7 +168,7 @@ def run_command(args: argparse.Namespace) -> int:
         def progress(cell, outcome):
             if outcome == "error":
                 tqdm.write(f"error in {cell.estimator} {cell.task}: {cell.error.splitlines()[-1]}")
-            bar.update(per_cell.get((cell.estimator, cell.task, cell.seed), 0.0))
+            advance(bar, per_cell.get((cell.estimator, cell.task, cell.seed), 0.0))
 
         try:
             summary = harness.run(
@@ -194,6 +194,14 @@ def run_command(args: argparse.Namespace) -> int:
 
 BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}{postfix}]"
 """The progress bar of a run: the share of the estimated work done and the time left."""
+
+
+def advance(bar: tqdm, seconds: float) -> None:
+    """Move ``bar`` on by ``seconds`` of estimated work, never past its total: the shares
+    of the estimate that the jobs report, summed in another order than the total was, can
+    exceed it by a rounding error, which tqdm answers with a warning and a negative time
+    left."""
+    bar.update(min(seconds, bar.total - bar.n))
 
 
 def announce(spec: harness.RunSpec, todo, done: int, profile_given: bool) -> list[float]:
