@@ -7,10 +7,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from tqdm import tqdm
-
 from kkl_bench.cli.common import add_cache_argument, add_jobs_argument
-from kkl_bench.cli.run import BAR, RESUME, advance, showing_jobs
+from kkl_bench.cli.run import RESUME, advance, showing_jobs, work_bar
 from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile
@@ -85,15 +83,10 @@ def regenerate_command(args: argparse.Namespace) -> int:
         return 0
     failed = 0
     with (
-        tqdm(
-            total=planned.estimate_s,
-            initial=sum(p.work_done_s for p in planned.jobs),
-            unit="s",
-            desc="regenerate (estimated work)",
-            dynamic_ncols=True,
-            mininterval=1.0,
-            smoothing=0.0,  # the time left from this invocation's average rate
-            bar_format=BAR,
+        work_bar(
+            planned.estimate_s,
+            "regenerate (estimated work)",
+            done_s=sum(p.work_done_s for p in planned.jobs),
         ) as bar,
         showing_jobs(bar, args.into / ".claims" / profile.name),
     ):

@@ -153,15 +153,7 @@ def run_command(args: argparse.Namespace) -> int:
         for task in job.tasks
     }
     with (
-        tqdm(
-            total=sum(weights),
-            unit="s",
-            desc=f"kkl-bench ({len(todo)} fits, estimated work)",
-            dynamic_ncols=True,
-            mininterval=1.0,
-            smoothing=0.0,  # the time left from the average rate of the whole run
-            bar_format=BAR,
-        ) as bar,
+        work_bar(sum(weights), f"kkl-bench ({len(todo)} fits, estimated work)") as bar,
         showing_jobs(bar, spec.results_dir / ".claims" / spec.profile.name),
     ):
 
@@ -194,6 +186,22 @@ def run_command(args: argparse.Namespace) -> int:
 
 BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}{postfix}]"
 """The progress bar of a run: the share of the estimated work done and the time left."""
+
+
+def work_bar(total_s: float, desc: str, done_s: float = 0.0) -> tqdm:
+    """A bar over ``total_s`` seconds of estimated work, ``done_s`` of it already done
+    (a resumed plan's banked work); its time left is read from the average rate since it
+    started, so a burst of quick cells does not set it."""
+    return tqdm(
+        total=total_s,
+        initial=done_s,
+        unit="s",
+        desc=desc,
+        dynamic_ncols=True,
+        mininterval=1.0,
+        smoothing=0.0,
+        bar_format=BAR,
+    )
 
 
 def advance(bar: tqdm, seconds: float) -> None:
