@@ -3,6 +3,7 @@ row's RMSE against another folder's."""
 
 import math
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -73,6 +74,15 @@ def test_a_rows_rmse_is_compared_on_the_cells_both_folders_hold():
     assert row["RMSE after"] == pytest.approx((0.1 + 0.3 + 1.1) / 3)
     assert row["after / before"] == pytest.approx(0.5)
     assert math.isclose(change.loc["ekf", "after / before"], 0.5)
+
+
+def test_no_ratio_is_given_against_a_mean_that_a_diverged_trajectory_made_infinite():
+    after = cells()
+    before = after.assign(rmse_mean=after["rmse_mean"] * 2)
+    before.loc[before["estimator"] == "ekf", "rmse_mean"] = np.inf
+    change = trainings.rmse_change(before, after).set_index("Row")
+    assert np.isnan(change.loc["ekf", "after / before"])  # not after / inf = 0
+    assert change.loc["curriculum_kkl", "after / before"] == pytest.approx(0.5)
 
 
 def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, capsys):

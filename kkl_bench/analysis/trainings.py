@@ -144,8 +144,9 @@ def training_table(records: pd.DataFrame) -> pd.DataFrame:
 
 def rmse_change(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
     """Per row and system, the mean RMSE over the cells (task and seed) that both
-    ``before`` and ``after`` hold, in each, and their ratio (after / before); a row or
-    system one of them lacks is left out."""
+    ``before`` and ``after`` hold, in each, and their ratio (after / before; none where
+    either mean is not finite, as a diverged trajectory leaves it); a row or system one of
+    them lacks is left out."""
     key = ["estimator", "task", "seed"]
     both = before[[*key, "system", "rmse_mean"]].merge(
         after[[*key, "rmse_mean"]], on=key, suffixes=(" before", " after")
@@ -159,7 +160,8 @@ def rmse_change(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
         )
         .reset_index()
     )
-    table["after / before"] = table["after"] / table["before"]
+    finite = np.isfinite(table["before"]) & np.isfinite(table["after"])
+    table["after / before"] = (table["after"] / table["before"]).where(finite)
     return table.rename(
         columns={
             "estimator": "Row",
