@@ -91,9 +91,10 @@ def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, cap
     assert main([*run, "--estimator", "autonomous_kkl", "ekf"]) == 0
     capsys.readouterr()
     assert main(["trainings", "--results", results, "--before", results]) == 0
-    steps, change = capsys.readouterr().out.split("\n\n")
+    steps, converged, change = capsys.readouterr().out.split("\n\n")
     assert "| autonomous_kkl | vdp      | phase1_log.encoder |" in steps
     assert "| autonomous_kkl | vdp      | phase1_log.decoder |" in steps and "ekf" not in steps
+    assert "of 1 learned cells" in converged  # the filter's cell is not a learned one
     assert "| ekf " in change and change.count("|                1 |") == 2  # after / before
     filters = str(tmp_path / "filters")
     assert (
@@ -148,3 +149,32 @@ def test_a_diverged_training_says_why_and_which_state_was_kept():
         in sentence
     )
     assert trainings.diverged_sentence(trainings.training_records(cells())) == ""
+
+
+def test_the_board_reads_a_cell_converged_only_when_every_seeds_fit_did():
+    frame = cells()  # seed 1's decoder reached its cap: both of the row's cells read no
+    verdicts = trainings.cell_verdicts(frame)
+    assert verdicts["task"].tolist() == ["duffing/zero@v1", "duffing/square@v1"]  # not ekf's
+    assert verdicts["converged"].tolist() == ["no", "no"]
+    assert trainings.converged_sentence(verdicts) == (
+        "Converged, as the board reads it (per row, system and task, over its seeds' fits): "
+        "2 no of 2 learned cells, 0.0% yes (`curriculum_kkl` on duffing, no: 2)."
+    )
+    plateaued = {"phase1_log": report(12000)["phase1_log"], "spent": {"phase1": {"steps": 1}}}
+    decoder = plateaued["phase1_log"]["decoder"]
+    diverged = {**plateaued, "phase1_log": {"decoder": {**decoder, "stopped": "diverged"}}}
+    learned = frame["estimator"] == "curriculum_kkl"
+    frame.loc[learned & (frame["seed"] == 0), "fit_report"] = [plateaued, plateaued]
+    frame.loc[
+        learned & frame["task"].str.contains("square") & (frame["seed"] == 1), "fit_report"
+    ] = [diverged]
+    assert trainings.converged_sentence(trainings.cell_verdicts(frame)) == (
+        "Converged, as the board reads it (per row, system and task, over its seeds' fits): "
+        "1 no, 1 diverged of 2 learned cells, 0.0% yes (`curriculum_kkl` on duffing, no: 1; "
+        "`curriculum_kkl` on duffing, diverged: 1)."
+    )
+    frame = frame[frame["seed"] == 0]  # both cells from seed 0's fit alone
+    assert trainings.converged_sentence(trainings.cell_verdicts(frame)) == (
+        "Converged, as the board reads it (per row, system and task, over its seeds' fits): "
+        "2 yes of 2 learned cells, 100.0% yes."
+    )

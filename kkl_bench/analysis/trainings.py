@@ -16,7 +16,18 @@ import math
 import numpy as np
 import pandas as pd
 
-from kkl_bench.support.convergence import DIVERGED, STOPPED_BY, outcome, trained, trainings
+from kkl_bench.support.convergence import (
+    DIVERGED,
+    NO,
+    STOPPED_BY,
+    UNRECORDED,
+    UNTRAINED,
+    YES,
+    outcome,
+    trained,
+    trainings,
+    verdict,
+)
 
 UNRECORDED_STOP = "not recorded"
 """Why a training stopped, for one from before the plateau rule (its report says not)."""
@@ -140,6 +151,43 @@ def training_table(records: pd.DataFrame) -> pd.DataFrame:
             }
         )
     return pd.DataFrame(rows)
+
+
+def cell_verdicts(cells: pd.DataFrame) -> pd.DataFrame:
+    """The board's Converged column for ``cells`` (one track's rows of
+    :func:`~kkl_bench.run.results.load_results`): per row, system and task, the verdict
+    (:func:`~kkl_bench.support.convergence.verdict`) on the trainings of its seeds' fits,
+    as columns ``estimator``, ``system``, ``task``, ``converged``; the cells of rows that
+    train nothing (the filters, an unsupported task) are left out."""
+    verdicts = (
+        cells.groupby(["estimator", "system", "task"], sort=False)["fit_report"]
+        .agg(lambda reports: verdict(list(reports)))
+        .rename("converged")
+        .reset_index()
+    )
+    return verdicts[verdicts["converged"] != UNTRAINED].reset_index(drop=True)
+
+
+def converged_sentence(verdicts: pd.DataFrame) -> str:
+    """How many of the learned cells in ``verdicts`` (:func:`cell_verdicts`) read each
+    verdict, with the share that converged, and where the others are (row and system, with
+    their number of cells), as one sentence."""
+    counts = verdicts["converged"].value_counts()
+    said = ", ".join(
+        f"{counts[label]} {label}" for label in (YES, NO, DIVERGED, UNRECORDED) if label in counts
+    )
+    share = counts.get(YES, 0) / len(verdicts)
+    others = [
+        f"`{estimator}` on {system}, {label}: {len(group)}"
+        for (estimator, system, label), group in verdicts[verdicts["converged"] != YES].groupby(
+            ["estimator", "system", "converged"], sort=False
+        )
+    ]
+    where = f" ({'; '.join(others)})" if others else ""
+    return (
+        f"Converged, as the board reads it (per row, system and task, over its seeds' fits): "
+        f"{said} of {len(verdicts)} learned cells, {share:.1%} yes{where}."
+    )
 
 
 def rmse_change(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:

@@ -67,7 +67,8 @@ def add_parser(commands) -> None:
         description="Per learned row, system and training (read from the fit reports of the "
         "track's cells, each fit once): the fits, their steps, how many stopped at the "
         "plateau, at the cap or diverged (protocol 6.5), and the median step whose state was "
-        "kept. With --before, each row's mean RMSE per system against another results "
+        "kept; then how many of the track's learned cells the board reads as converged. "
+        "With --before, each row's mean RMSE per system against another results "
         "folder's, on the cells both hold (a refit's before and after).",
     )
     add_reading_arguments(fits)
@@ -120,6 +121,7 @@ def print_trainings(args: argparse.Namespace) -> int:
     if records.empty:
         raise ValueError(f"no trained fits among the {args.track} track's cells in {args.results}/")
     print(markdown.table(Table(trainings.training_table(records), floatfmt=".5g")))
+    print("\n" + trainings.converged_sentence(trainings.cell_verdicts(results)))
     if args.before is not None:
         before = of_track(load_results(args.before, profile=results["profile"].iloc[0]), args.track)
         print("\n" + markdown.table(Table(trainings.rmse_change(before, results), floatfmt=".4g")))
