@@ -14,7 +14,7 @@ from scipy.linalg import solve_sylvester
 from kkl_bench.estimator import FitContext
 from kkl_bench.kkl import autonomous, optimize
 from kkl_bench.kkl import decoder as decoder_module
-from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomous
+from kkl_bench.kkl.autonomous import AutonomousModel, Phase1Config, fit_autonomous, phase1_rule
 from kkl_bench.kkl.boxes import training_boxes
 from kkl_bench.kkl.frozen import FrozenMLP
 from kkl_bench.kkl.gain import select_gain
@@ -27,6 +27,7 @@ from kkl_bench.kkl.latent import (
 )
 from kkl_bench.kkl.networks import NormalizedMLP, affine_normalization
 from kkl_bench.kkl.pde import directional_derivative, pde_residual
+from kkl_bench.kkl.plateau import PlateauRule
 from kkl_bench.kkl.windows import WindowEncoder, distinct, embed, is_active, sliding_windows
 from kkl_bench.protocol import DT, N_SAMPLES, SIGMA_V, SIGMA_W
 from kkl_bench.protocol.system import MeasureOneState, stack
@@ -691,6 +692,18 @@ def test_checkpoints_are_reused_and_invalidated(tmp_path, monkeypatch):
     assert len(calls) == 6  # a changed budget retrains
     fit_autonomous(context_for(system, TINY, tmp_path, seed=1), config)
     assert len(calls) == 9  # so does another seed
+    fit_autonomous(context_for(system, {**TINY, "phase1_plateau_patience": 7}, tmp_path), config)
+    assert len(calls) == 12  # and another plateau rule
+
+
+def test_phase1_waits_its_own_patience_where_the_profile_sets_one(tmp_path):
+    system = systems.get("vdp")()
+    budget = {**TINY, "plateau_patience": 4, "plateau_reductions": 3}
+    assert phase1_rule(context_for(system, budget, tmp_path)) == PlateauRule(
+        validate_every=TINY["validate_every"], plateau_patience=4, plateau_reductions=3
+    )
+    longer = phase1_rule(context_for(system, {**budget, "phase1_plateau_patience": 9}, tmp_path))
+    assert (longer.plateau_patience, longer.plateau_reductions) == (9, 3)
 
 
 def test_fit_reports_count_the_optimizer_steps_and_samples_each_phase_spent(fitted_family):

@@ -28,7 +28,7 @@ a Phase 1 that is killed continues from its last checkpoint when rerun.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -313,13 +313,23 @@ def _train_phase1(
     return rates, selection, {"encoder": encoding.log(), "decoder": training.log()}
 
 
+def phase1_rule(context: FitContext) -> PlateauRule:
+    """The plateau rule that ends Phase 1's encoder and decoder trainings: the profile's
+    (:func:`from_budget`), with the budget's ``phase1_plateau_patience`` as its patience
+    where the profile sets one (protocol 6.5: Phase 1's validation errors move most
+    between measurements at the first learning rate)."""
+    rule = from_budget(PlateauRule, context)
+    patience = context.budget.get("phase1_plateau_patience")
+    return rule if patience is None else replace(rule, plateau_patience=patience)
+
+
 def fit_autonomous(
     context: FitContext, config: Phase1Config, rule: PlateauRule | None = None
 ) -> AutonomousModel:
     """Train (or load from the cache) the Phase-1 model for ``context.system``; its
-    trainings end by ``rule`` (default: the profile's, :func:`from_budget`)."""
+    trainings end by ``rule`` (default: the profile's for Phase 1, :func:`phase1_rule`)."""
     system = context.system
-    rule = rule or from_budget(PlateauRule, context)
+    rule = rule or phase1_rule(context)
     description = {
         "kind": "kkl-phase1",
         "toolkit": TOOLKIT_VERSION,
