@@ -63,6 +63,43 @@ def test_a_model_several_rows_share_is_counted_once():
     assert resumed.seconds(Job("b", "duffing", (task,), 0)) == 20.0
 
 
+def test_a_resumed_plan_counts_each_row_s_fits_left_at_the_rate_its_finished_fits_took(
+    published, tmp_path
+):
+    into = tmp_path / "into"
+    planned = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
+    assert planned.rates is None and planned.expected_s == planned.estimate_s
+    finished = {"seconds": 30.0, "wall_seconds": 40.0, "cells": 1, "failed": 0}
+    into.mkdir()
+    (into / ledger.LEDGER_FILE).write_text(
+        json.dumps(
+            {
+                "jobs": {  # two finished EKF fits of other seeds: 3 and 1 times their estimates
+                    "ekf duffing seed7 [duffing/zero@v1]": {**finished, "estimate_s": 5.0},
+                    "ekf duffing seed8 [duffing/zero@v1]": {**finished, "estimate_s": 25.0},
+                }
+            }
+        )
+    )
+    resumed = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
+    assert resumed.rates.by_row == {"ekf": 2.0} and resumed.rates.overall == 2.0
+    ekf, ukf = resumed.jobs
+    assert (ekf.rate, ukf.rate) == (2.0, 1.0)  # the UKF has no finished fit: its estimate
+    assert resumed.expected_s == pytest.approx(2 * ekf.estimate_s + ukf.estimate_s)
+    assert "The 2 fits finished in this folder took 2.00 times their estimates (ekf 2.00)" in (
+        resumed.describe()
+    )
+
+
+def test_a_ledger_key_names_its_row_even_with_a_variant():
+    key = regenerate.job_key(
+        Job("particle_filter[n=20000]", "lorenz", (Task("lorenz", "zero"),), 2)
+    )
+    assert regenerate._row_of(key) == "particle_filter[n=20000]"
+    with pytest.raises(ValueError, match="not a regeneration ledger key"):
+        regenerate._row_of("ekf")
+
+
 def test_an_interrupted_regeneration_resumes_and_makes_each_cell_once(
     published, tmp_path, capsys, monkeypatch
 ):

@@ -84,7 +84,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
     failed = 0
     with (
         work_bar(
-            planned.estimate_s,
+            planned.expected_s,
             "regenerate (estimated work)",
             done_s=sum(p.work_done_s for p in planned.jobs),
         ) as bar,
@@ -94,7 +94,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
         def progress(planned_job, outcome):
             nonlocal failed
             failed += sum(cell.status == "error" for cell in outcome.scored)
-            advance(bar, planned_job.estimate_s - planned_job.work_done_s)
+            advance(bar, planned_job.expected_s - planned_job.work_done_s)
 
         try:
             written = regenerate.run(

@@ -8,7 +8,9 @@ would run it. Nothing in the source folder is written. A job's cost is estimated
 the source cells' own records (the training seconds stored with their models, the
 Phase-1 models the KKL rows share counted once, and their scoring time), so the plan
 states its core-hours before it starts, and the progress bar counts estimated seconds
-of work, not cells.
+of work, not cells. A resumed regeneration also says how many times their estimates
+the fits it finished took, and counts each row's remaining fits at its row's rate
+(:func:`measured_rates`).
 
 The run is resumable like ``kkl-bench run``: cells already in the target folder are
 skipped, and a killed training continues from its checkpoint in the model cache. Each
@@ -22,6 +24,7 @@ the board's Reproduce section reads them.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,19 +52,27 @@ from kkl_bench.support.executors import execute
 @dataclass(frozen=True)
 class PlannedJob:
     """One harness job of a regeneration, with the spec of its row's run, its estimated
-    wall time (s, one thread) and the processor seconds its killed attempts already spent
-    (:func:`~kkl_bench.run.ledger.banked_seconds`)."""
+    wall time (s, one thread, from the source cells' records), the processor seconds its
+    killed attempts already spent (:func:`~kkl_bench.run.ledger.banked_seconds`) and
+    ``rate``, how many times their estimates the finished fits of its row took in this
+    regeneration (:func:`measured_rates`; 1 before any of its row finished)."""
 
     spec: RunSpec
     job: Job
     estimate_s: float
     banked_s: float = 0.0
+    rate: float = 1.0
+
+    @property
+    def expected_s(self) -> float:
+        """Its estimate at the rate measured so far: what the progress bar counts."""
+        return self.estimate_s * self.rate
 
     @property
     def work_done_s(self) -> float:
-        """The share of its estimate done before this invocation (its banked seconds, at
-        most the estimate): a resumed training continues from its checkpoint."""
-        return min(self.banked_s, self.estimate_s)
+        """The share of its expected work done before this invocation (its banked seconds,
+        at most the expected): a resumed training continues from its checkpoint."""
+        return min(self.banked_s, self.expected_s)
 
     @property
     def key(self) -> str:
@@ -82,10 +93,16 @@ class Plan:
     jobs: list[PlannedJob]
     cells: int
     done: int
+    rates: MeasuredRates | None = None
 
     @property
     def estimate_s(self) -> float:
         return sum(planned.estimate_s for planned in self.jobs)
+
+    @property
+    def expected_s(self) -> float:
+        """The estimate with each job at its row's measured rate (:attr:`PlannedJob.rate`)."""
+        return sum(planned.expected_s for planned in self.jobs)
 
     def describe(self) -> str:
         """The plan in a few lines: rows, fits, cells, estimated core-hours."""
@@ -110,7 +127,61 @@ class Plan:
                 f"{len(resumed)} of the fits resume killed attempts, which spent "
                 f"{sum(p.banked_s for p in resumed) / 3600:.2f} core-hours"
             )
+        if self.rates is not None:
+            lines.append(self.rates.describe(self.expected_s))
         return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class MeasuredRates:
+    """How many times their estimates the fits a regeneration finished took (processor
+    seconds over estimated seconds, from its ledger), per row and over all. Estimates come
+    from the source cells' records, made on another machine, at another commit and often
+    under another training rule, and the rows' rates differ widely, so a row's rate is
+    applied to its own fits only."""
+
+    by_row: dict[str, float]
+    overall: float
+    fits: int
+
+    def rate(self, row: str) -> float:
+        """``row``'s measured rate; 1 (its estimate) for a row with no finished fit."""
+        return self.by_row.get(row, 1.0)
+
+    def describe(self, expected_s: float) -> str:
+        rows = ", ".join(f"{row} {rate:.2f}" for row, rate in self.by_row.items())
+        return (
+            f"The {self.fits} fits finished in this folder took {self.overall:.2f} times "
+            f"their estimates ({rows}); with each of those rows at its rate and the others "
+            f"at their estimates, the fits left take about {expected_s / 3600:.1f} core-hours"
+        )
+
+
+def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
+    """The rates of the finished fits of ``ledger`` (:func:`~kkl_bench.run.ledger.read_ledger`)
+    whose estimates are positive; None if there are none."""
+    seconds: dict[str, float] = {}
+    estimated: dict[str, float] = {}
+    fits = 0
+    for key, record in ledger["jobs"].items():
+        if record["estimate_s"] > 0:
+            row = _row_of(key)
+            seconds[row] = seconds.get(row, 0.0) + record["seconds"]
+            estimated[row] = estimated.get(row, 0.0) + record["estimate_s"]
+            fits += 1
+    if not fits:
+        return None
+    by_row = {row: seconds[row] / estimated[row] for row in seconds}
+    overall = sum(seconds.values()) / sum(estimated.values())
+    return MeasuredRates(by_row, overall, fits)
+
+
+def _row_of(key: str) -> str:
+    """The row of a ledger key (:func:`job_key`)."""
+    matched = re.fullmatch(r"(.+) \S+ seed\d+ \[.*\]", key)
+    if matched is None:
+        raise ValueError(f"not a regeneration ledger key: {key!r}")
+    return matched.group(1)
 
 
 def plan(
@@ -152,6 +223,7 @@ def plan(
         done += sum(key in wanted for key in finished)
         known.made(key for key in finished if key in wanted)
         planned.append((spec, todo))
+    rates = measured_rates(read_ledger(into))
     jobs = []
     for spec, todo in planned:
         for job in todo:
@@ -159,8 +231,9 @@ def plan(
             if tasks:
                 job = Job(job.estimator, job.system, tasks, job.seed)
                 banked = banked_seconds(into, job_key(job))
-                jobs.append(PlannedJob(spec, job, known.seconds(job), banked))
-    return Plan(jobs, len(wanted), done)
+                rate = 1.0 if rates is None else rates.rate(job.estimator)
+                jobs.append(PlannedJob(spec, job, known.seconds(job), banked, rate))
+    return Plan(jobs, len(wanted), done, rates)
 
 
 class _CostRecords:
