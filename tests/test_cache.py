@@ -132,3 +132,48 @@ def test_the_figures_draw_on_none_of_the_estimators_or_systems_code():
     assert not [
         name for name in drawing if name.startswith(("kkl_bench.estimators", "kkl_bench.systems"))
     ]
+
+
+def test_trained_models_travel_by_export_and_import_and_nothing_else_does(tmp_path, capsys):
+    """The models of one cache reach another machine's through a folder: only whole,
+    checksummed models (the checkpoints of trainings under way when asked), never over a
+    file already there."""
+    here, travelling, there = tmp_path / "here", tmp_path / "travelling", tmp_path / "there"
+    _, model = stored(here)
+    damaged = CheckpointCache(here).save("test-kind", {**DESCRIPTION, "value": 2}, {"w": 1})
+    damaged.with_name(damaged.name + ".sha256").write_text("0" * 64)
+    CheckpointCache(here).save("kkl-resume", DESCRIPTION, {"step": 7})
+    (here / "test-kind" / f"{model.name}.lock").write_text("")
+    (here / "bound_kernels").mkdir()
+    (here / "bound_kernels" / "kernel.py").write_text("")
+
+    assert main(["cache", "export", str(travelling), "--cache", str(here)]) == 0
+    assert "exported 1 model (" in capsys.readouterr().out
+    assert sorted(p.relative_to(travelling).as_posix() for p in travelling.rglob("*")) == [
+        "test-kind",
+        f"test-kind/{model.name}",
+        f"test-kind/{model.name}.sha256",
+    ]
+    assert main(["cache", "import", str(travelling), "--cache", str(there)]) == 0
+    torch.testing.assert_close(
+        CheckpointCache(there).load("test-kind", DESCRIPTION)["weights"], torch.arange(1000.0)
+    )
+    assert main(["cache", "export", str(travelling), "--cache", str(here)]) == 0
+    out = capsys.readouterr().out
+    assert "exported 0 models" in out and "1 already there; 1 left (damaged" in out
+
+    assert (
+        main(["cache", "export", str(travelling), "--with-checkpoints", "--cache", str(here)]) == 0
+    )
+    assert CheckpointCache(travelling).load("kkl-resume", DESCRIPTION) == {
+        "step": 7,
+        "description": '{"kind": "test", "value": 1}',
+    }
+
+
+def test_export_and_import_need_a_folder_and_the_others_take_none(tmp_path, capsys):
+    assert main(["cache", "export", "--cache", str(tmp_path)]) == 2
+    assert "kkl-bench cache export needs a FOLDER" in capsys.readouterr().err
+    assert main(["cache", "info", str(tmp_path), "--cache", str(tmp_path)]) == 2
+    assert main(["cache", "import", str(tmp_path / "absent"), "--cache", str(tmp_path)]) == 2
+    assert "nothing to import" in capsys.readouterr().err

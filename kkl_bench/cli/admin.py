@@ -19,7 +19,7 @@ from kkl_bench.run import fit_times
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import Task, load_profiles
 from kkl_bench.suite.tracks import broken_tracks, get_track, load_tracks
-from kkl_bench.support.cache import cache_info, clear_cache, default_cache_dir
+from kkl_bench.support.cache import cache_info, carry_models, clear_cache, default_cache_dir
 from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
 from kkl_bench.testing.systems import run_system_checks
 
@@ -30,8 +30,22 @@ def add_parser(commands) -> None:
     )
     listing.set_defaults(handler=list_everything)
 
-    cache = commands.add_parser("cache", help="show or clear the cache of trained models")
-    cache.add_argument("action", choices=("info", "clear"))
+    cache = commands.add_parser(
+        "cache",
+        help="show, clear, export or import the cache of trained models",
+        description="info: what the cache holds; clear: delete it; export FOLDER: copy its "
+        "trained models (checksummed, never overwriting) into FOLDER, e.g. one that travels "
+        "to another machine with a long regeneration; import FOLDER: copy them from FOLDER "
+        "into the cache. The checkpoints of trainings under way travel with "
+        "--with-checkpoints; kernels compiled for one machine never do.",
+    )
+    cache.add_argument("action", choices=("info", "clear", "export", "import"))
+    cache.add_argument("folder", nargs="?", type=Path, help="for export and import")
+    cache.add_argument(
+        "--with-checkpoints",
+        action="store_true",
+        help="also carry the checkpoints of trainings under way (a killed training resumes)",
+    )
     add_cache_argument(cache)
     cache.set_defaults(handler=manage_cache)
 
@@ -123,6 +137,24 @@ def _family_label(cls: type) -> str:
 
 def manage_cache(args: argparse.Namespace) -> int:
     root = args.cache or default_cache_dir()
+    carrying = args.action in ("export", "import")
+    if carrying != (args.folder is not None):
+        needs = "needs a FOLDER" if carrying else "takes no FOLDER (export and import do)"
+        raise ValueError(f"kkl-bench cache {args.action} {needs}")
+    if carrying:
+        source, destination = (
+            (root, args.folder) if args.action == "export" else (args.folder, root)
+        )
+        if not Path(source).is_dir():
+            raise ValueError(f"nothing to {args.action}: {source} is not a folder")
+        carried = carry_models(source, destination, args.with_checkpoints)
+        print(
+            f"{args.action}ed {carried.copied} model{'s' * (carried.copied != 1)} "
+            f"({carried.size_bytes / 1e6:.1f} MB) from "
+            f"{source} to {destination}; {carried.present} already there"
+            + (f"; {carried.left} left (damaged, or being written)" if carried.left else "")
+        )
+        return 0
     if args.action == "clear":
         print(f"removed {root} ({clear_cache(root) / 1e6:.1f} MB)")
         return 0

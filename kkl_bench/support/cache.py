@@ -160,6 +160,54 @@ def clear_cache(root: Path) -> int:
     return freed
 
 
+@dataclass(frozen=True)
+class Carried:
+    """What :func:`carry_models` did: models copied (and their bytes), models the destination
+    already held, and files it left (damaged, or still being written: no matching sidecar)."""
+
+    copied: int
+    size_bytes: int
+    present: int
+    left: int
+
+
+def carry_models(source: Path, destination: Path, checkpoints: bool = False) -> Carried:
+    """Copy the trained models of the cache at ``source`` into ``destination`` (another
+    cache, or a folder that travels to another machine), never overwriting a file there.
+
+    A model is a ``<kind>/<key>.pt`` file whose SHA-256 sidecar matches its bytes; it is
+    copied under a temporary name and renamed, then its sidecar, so an interrupted copy
+    leaves at most a file without a sidecar, which the cache rebuilds instead of loading.
+    The checkpoints of trainings under way (:data:`~kkl_bench.kkl.optimize.RESUME_KIND`) are
+    carried only with ``checkpoints``; locks and the kernels generated for one machine
+    (``*.py``) never.
+    """
+    from kkl_bench.kkl.optimize import RESUME_KIND  # it imports this module
+
+    copied = size = present = left = 0
+    for folder in sorted(p for p in Path(source).glob("*") if p.is_dir()):
+        if folder.name == RESUME_KIND and not checkpoints:
+            continue
+        for model in sorted(folder.glob("*.pt")):
+            checksum = checksum_path(model)
+            if not checksum.exists() or checksum.read_text().strip() != sha256_of(model):
+                left += 1
+                continue
+            target = Path(destination) / folder.name / model.name
+            if target.exists():
+                present += 1
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            handle, temporary = tempfile.mkstemp(dir=target.parent, suffix=".tmp")
+            os.close(handle)
+            shutil.copyfile(model, temporary)
+            os.replace(temporary, target)
+            shutil.copyfile(checksum, checksum_path(target))
+            copied += 1
+            size += model.stat().st_size
+    return Carried(copied, size, present, left)
+
+
 def import_generated(source: str, folder: Path, stem: str) -> ModuleType:
     """Import generated ``source`` as a module saved in ``folder`` (a kind of the cache),
     named by ``stem`` and the source's hash with its checksum beside it, so that numba's
