@@ -154,7 +154,11 @@ def test_trained_models_travel_by_export_and_import_and_nothing_else_does(tmp_pa
         f"test-kind/{model.name}",
         f"test-kind/{model.name}.sha256",
     ]
+    interrupted = there / "test-kind" / model.name  # an earlier import cut before the sidecar
+    interrupted.parent.mkdir(parents=True)
+    interrupted.write_bytes(model.read_bytes()[:100])
     assert main(["cache", "import", str(travelling), "--cache", str(there)]) == 0
+    assert "imported 1 model (" in capsys.readouterr().out
     torch.testing.assert_close(
         CheckpointCache(there).load("test-kind", DESCRIPTION)["weights"], torch.arange(1000.0)
     )

@@ -34,7 +34,7 @@ def add_parser(commands) -> None:
         "cache",
         help="show, clear, export or import the cache of trained models",
         description="info: what the cache holds; clear: delete it; export FOLDER: copy its "
-        "trained models (checksummed, never overwriting) into FOLDER, e.g. one that travels "
+        "trained models (checksummed, never over an intact one) into FOLDER, e.g. one that travels "
         "to another machine with a long regeneration; import FOLDER: copy them from FOLDER "
         "into the cache. The checkpoints of trainings under way travel with "
         "--with-checkpoints; kernels compiled for one machine never do.",

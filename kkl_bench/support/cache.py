@@ -173,11 +173,13 @@ class Carried:
 
 def carry_models(source: Path, destination: Path, checkpoints: bool = False) -> Carried:
     """Copy the trained models of the cache at ``source`` into ``destination`` (another
-    cache, or a folder that travels to another machine), never overwriting a file there.
+    cache, or a folder that travels to another machine), never over an intact model there.
 
     A model is a ``<kind>/<key>.pt`` file whose SHA-256 sidecar matches its bytes; it is
     copied under a temporary name and renamed, then its sidecar, so an interrupted copy
-    leaves at most a file without a sidecar, which the cache rebuilds instead of loading.
+    leaves at most a file without a sidecar, which the cache would rebuild instead of
+    loading and the next copy replaces (as it replaces any damaged file; an intact one
+    stays, even where it differs: a model of the same key trained on another machine).
     The checkpoints of trainings under way (:data:`~kkl_bench.kkl.optimize.RESUME_KIND`) are
     carried only with ``checkpoints``; locks and the kernels generated for one machine
     (``*.py``) never.
@@ -189,23 +191,29 @@ def carry_models(source: Path, destination: Path, checkpoints: bool = False) -> 
         if folder.name == RESUME_KIND and not checkpoints:
             continue
         for model in sorted(folder.glob("*.pt")):
-            checksum = checksum_path(model)
-            if not checksum.exists() or checksum.read_text().strip() != sha256_of(model):
+            if not _intact(model):
                 left += 1
                 continue
             target = Path(destination) / folder.name / model.name
-            if target.exists():
+            if _intact(target):
                 present += 1
                 continue
             target.parent.mkdir(parents=True, exist_ok=True)
             handle, temporary = tempfile.mkstemp(dir=target.parent, suffix=".tmp")
             os.close(handle)
             shutil.copyfile(model, temporary)
+            checksum_path(target).unlink(missing_ok=True)  # a damaged file's, if any
             os.replace(temporary, target)
-            shutil.copyfile(checksum, checksum_path(target))
+            shutil.copyfile(checksum_path(model), checksum_path(target))
             copied += 1
             size += model.stat().st_size
     return Carried(copied, size, present, left)
+
+
+def _intact(path: Path) -> bool:
+    """Whether ``path`` exists with a SHA-256 sidecar that matches its bytes."""
+    checksum = checksum_path(path)
+    return path.exists() and checksum.exists() and checksum.read_text().strip() == sha256_of(path)
 
 
 def import_generated(source: str, folder: Path, stem: str) -> ModuleType:
