@@ -136,8 +136,8 @@ def test_the_figures_draw_on_none_of_the_estimators_or_systems_code():
 
 def test_trained_models_travel_by_export_and_import_and_nothing_else_does(tmp_path, capsys):
     """The models of one cache reach another machine's through a folder: only whole,
-    checksummed models (the checkpoints of trainings under way when asked), never over a
-    file already there."""
+    checksummed models (the checkpoints of trainings under way when asked), never over an
+    intact model already there, over a half-copied one."""
     here, travelling, there = tmp_path / "here", tmp_path / "travelling", tmp_path / "there"
     _, model = stored(here)
     damaged = CheckpointCache(here).save("test-kind", {**DESCRIPTION, "value": 2}, {"w": 1})

@@ -141,10 +141,7 @@ def cache_info(root: Path) -> list[CacheKind]:
         entries = [
             p for p in folder.iterdir() if p.is_file() and not p.name.endswith((".sha256", ".tmp"))
         ]
-        damaged = sum(
-            not checksum_path(p).exists() or checksum_path(p).read_text().strip() != sha256_of(p)
-            for p in entries
-        )
+        damaged = sum(not _intact(p) for p in entries)
         size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
         kinds.append(CacheKind(folder.name, len(entries), size, damaged))
     return kinds
