@@ -74,7 +74,7 @@ def test_a_resumed_plan_counts_each_row_s_fits_left_at_the_rate_its_finished_fit
     (into / ledger.LEDGER_FILE).write_text(
         json.dumps(
             {
-                "jobs": {  # two finished EKF fits of other seeds: 3 and 1 times their estimates
+                "jobs": {  # two finished EKF fits of other seeds: 6 and 1.2 times their estimates, 2 over both
                     "ekf duffing seed7 [duffing/zero@v1]": {**finished, "estimate_s": 5.0},
                     "ekf duffing seed8 [duffing/zero@v1]": {**finished, "estimate_s": 25.0},
                 }
