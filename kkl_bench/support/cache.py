@@ -157,6 +157,11 @@ def clear_cache(root: Path) -> int:
     return freed
 
 
+RESUME_KIND = "kkl-resume"
+"""The kind of the checkpoints of trainings under way (the name ``kkl_bench.kkl.optimize``
+writes them under; this layer may not import it, and a test keeps the two equal)."""
+
+
 @dataclass(frozen=True)
 class Carried:
     """What :func:`carry_models` did: models copied (and their bytes), models the destination
@@ -177,12 +182,10 @@ def carry_models(source: Path, destination: Path, checkpoints: bool = False) -> 
     leaves at most a file without a sidecar, which the cache would rebuild instead of
     loading and the next copy replaces (as it replaces any damaged file; an intact one
     stays, even where it differs: a model of the same key trained on another machine).
-    The checkpoints of trainings under way (:data:`~kkl_bench.kkl.optimize.RESUME_KIND`) are
+    The checkpoints of trainings under way (:data:`RESUME_KIND`) are
     carried only with ``checkpoints``; locks and the kernels generated for one machine
     (``*.py``) never.
     """
-    from kkl_bench.kkl.optimize import RESUME_KIND  # it imports this module
-
     copied = size = present = left = 0
     for folder in sorted(p for p in Path(source).glob("*") if p.is_dir()):
         if folder.name == RESUME_KIND and not checkpoints:
