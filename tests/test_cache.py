@@ -181,9 +181,3 @@ def test_export_and_import_need_a_folder_and_the_others_take_none(tmp_path, caps
     assert main(["cache", "info", str(tmp_path), "--cache", str(tmp_path)]) == 2
     assert main(["cache", "import", str(tmp_path / "absent"), "--cache", str(tmp_path)]) == 2
     assert "nothing to import" in capsys.readouterr().err
-
-
-def test_the_cache_layer_names_the_resume_checkpoints_as_the_trainings_write_them():
-    from kkl_bench.kkl.optimize import RESUME_KIND
-
-    assert cache.RESUME_KIND == RESUME_KIND

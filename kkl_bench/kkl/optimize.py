@@ -37,10 +37,10 @@ from tqdm import tqdm
 from kkl_bench.kkl.cache import CheckpointCache
 from kkl_bench.kkl.plateau import PLATEAU, Plateau, PlateauRule
 from kkl_bench.support import flops, status
+from kkl_bench.support.cache import RESUME_KIND
 from kkl_bench.support.convergence import converged
 from kkl_bench.support.provenance import provenance
 
-RESUME_KIND = "kkl-resume"
 CHECKPOINT_EVERY = 500
 """Optimizer steps between two checkpoints of a resumable training."""
 

@@ -158,8 +158,8 @@ def clear_cache(root: Path) -> int:
 
 
 RESUME_KIND = "kkl-resume"
-"""The kind of the checkpoints of trainings under way (the name ``kkl_bench.kkl.optimize``
-writes them under; this layer may not import it, and a test keeps the two equal)."""
+"""The kind of the checkpoints of trainings under way (:mod:`kkl_bench.kkl.optimize` writes
+them under it; :func:`carry_models` carries them only when asked)."""
 
 
 @dataclass(frozen=True)
