@@ -175,6 +175,41 @@ def test_trained_models_travel_by_export_and_import_and_nothing_else_does(tmp_pa
     }
 
 
+def test_an_export_with_checkpoints_is_a_snapshot_and_an_import_keeps_those_already_there(
+    tmp_path, capsys
+):
+    """A checkpoint's key names a training whose state moves on: an export replaces the
+    folder's older checkpoint and drops those of trainings that finished; an import never
+    replaces one the cache holds (a training there may be resuming from it)."""
+    here, travelling, there = tmp_path / "here", tmp_path / "travelling", tmp_path / "there"
+    under_way = {**DESCRIPTION, "slot": 0}
+    finished = {**DESCRIPTION, "slot": 1}
+    CheckpointCache(here).save("kkl-resume", under_way, {"step": 200})
+    CheckpointCache(here).save("kkl-resume", finished, {"step": 400})
+
+    def export() -> str:
+        command = ["cache", "export", str(travelling), "--with-checkpoints", "--cache", str(here)]
+        assert main(command) == 0
+        return capsys.readouterr().out
+
+    assert "exported 2 models" in export()
+    CheckpointCache(here).save("kkl-resume", under_way, {"step": 600})
+    CheckpointCache(here).remove("kkl-resume", finished)
+    out = export()
+    assert "exported 1 model (" in out and "1 finished trainings' checkpoints dropped" in out
+    assert CheckpointCache(travelling).load("kkl-resume", under_way)["step"] == 600
+    assert CheckpointCache(travelling).load("kkl-resume", finished) is None
+    assert sorted(p.name for p in (travelling / "kkl-resume").iterdir()) == sorted(
+        p.name for p in (here / "kkl-resume").iterdir()
+    )
+
+    CheckpointCache(there).save("kkl-resume", under_way, {"step": 800})
+    command = ["cache", "import", str(travelling), "--with-checkpoints", "--cache", str(there)]
+    assert main(command) == 0
+    assert "imported 0 models" in capsys.readouterr().out
+    assert CheckpointCache(there).load("kkl-resume", under_way)["step"] == 800
+
+
 def test_export_and_import_need_a_folder_and_the_others_take_none(tmp_path, capsys):
     assert main(["cache", "export", "--cache", str(tmp_path)]) == 2
     assert "kkl-bench cache export needs a FOLDER" in capsys.readouterr().err

@@ -37,7 +37,9 @@ def add_parser(commands) -> None:
         "trained models (checksummed, never over an intact one) into FOLDER, e.g. one that travels "
         "to another machine with a long regeneration; import FOLDER: copy them from FOLDER "
         "into the cache. The checkpoints of trainings under way travel with "
-        "--with-checkpoints; kernels compiled for one machine never do.",
+        "--with-checkpoints (an export makes FOLDER's the cache's own: newer ones replace "
+        "older, a finished training's are dropped; an import keeps those already in the "
+        "cache); kernels compiled for one machine never do.",
     )
     cache.add_argument("action", choices=("info", "clear", "export", "import"))
     cache.add_argument("folder", nargs="?", type=Path, help="for export and import")
@@ -142,17 +144,21 @@ def manage_cache(args: argparse.Namespace) -> int:
         needs = "needs a FOLDER" if carrying else "takes no FOLDER (export and import do)"
         raise ValueError(f"kkl-bench cache {args.action} {needs}")
     if carrying:
-        source, destination = (
-            (root, args.folder) if args.action == "export" else (args.folder, root)
-        )
+        exporting = args.action == "export"
+        source, destination = (root, args.folder) if exporting else (args.folder, root)
         if not Path(source).is_dir():
             raise ValueError(f"nothing to {args.action}: {source} is not a folder")
-        carried = carry_models(source, destination, args.with_checkpoints)
+        carried = carry_models(source, destination, args.with_checkpoints, snapshot=exporting)
         print(
             f"{args.action}ed {carried.copied} model{'s' * (carried.copied != 1)} "
             f"({carried.size_bytes / 1e6:.1f} MB) from "
             f"{source} to {destination}; {carried.present} already there"
             + (f"; {carried.left} left (damaged, or being written)" if carried.left else "")
+            + (
+                f"; {carried.dropped} finished trainings' checkpoints dropped"
+                if carried.dropped
+                else ""
+            )
         )
         return 0
     if args.action == "clear":

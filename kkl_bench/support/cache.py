@@ -165,15 +165,19 @@ them under it; :func:`carry_models` carries them only when asked)."""
 @dataclass(frozen=True)
 class Carried:
     """What :func:`carry_models` did: models copied (and their bytes), models the destination
-    already held, and files it left (damaged, or still being written: no matching sidecar)."""
+    already held, files it left (damaged, or still being written: no matching sidecar), and
+    the destination's checkpoints it removed (trainings the source no longer has under way)."""
 
     copied: int
     size_bytes: int
     present: int
     left: int
+    dropped: int = 0
 
 
-def carry_models(source: Path, destination: Path, checkpoints: bool = False) -> Carried:
+def carry_models(
+    source: Path, destination: Path, checkpoints: bool = False, snapshot: bool = False
+) -> Carried:
     """Copy the trained models of the cache at ``source`` into ``destination`` (another
     cache, or a folder that travels to another machine), never over an intact model there.
 
@@ -182,38 +186,64 @@ def carry_models(source: Path, destination: Path, checkpoints: bool = False) -> 
     leaves at most a file without a sidecar, which the cache would rebuild instead of
     loading and the next copy replaces (as it replaces any damaged file; an intact one
     stays, even where it differs: a model of the same key trained on another machine).
-    The checkpoints of trainings under way (:data:`RESUME_KIND`) are
-    carried only with ``checkpoints``; locks and the kernels generated for one machine
-    (``*.py``) never.
+    The checkpoints of trainings under way (:data:`RESUME_KIND`) are carried only with
+    ``checkpoints``; locks and the kernels generated for one machine (``*.py``) never.
+
+    A checkpoint is not content-keyed: its key names a training, whose state moves on. With
+    ``snapshot`` (an export from the cache that trains) the destination's checkpoints become
+    the source's: an intact one that differs is replaced, and one whose training the source
+    no longer has (finished, its checkpoints removed) is dropped; one the source is still
+    writing stays as it was. Without it (an import) an intact checkpoint at the destination
+    stays, since a training there may be resuming from it.
     """
-    copied = size = present = left = 0
+    copied = size = present = left = dropped = 0
     for folder in sorted(p for p in Path(source).glob("*") if p.is_dir()):
-        if folder.name == RESUME_KIND and not checkpoints:
+        resume = folder.name == RESUME_KIND
+        if resume and not checkpoints:
             continue
+        replace = resume and snapshot
         for model in sorted(folder.glob("*.pt")):
             if not _intact(model):
                 left += 1
                 continue
             target = Path(destination) / folder.name / model.name
-            if _intact(target):
+            if _intact(target) and not (replace and _digest(model) != _digest(target)):
                 present += 1
                 continue
-            target.parent.mkdir(parents=True, exist_ok=True)
-            handle, temporary = tempfile.mkstemp(dir=target.parent, suffix=".tmp")
-            os.close(handle)
-            shutil.copyfile(model, temporary)
-            checksum_path(target).unlink(missing_ok=True)  # a damaged file's, if any
-            os.replace(temporary, target)
-            shutil.copyfile(checksum_path(model), checksum_path(target))
+            _copy_with_sidecar(model, target)
             copied += 1
             size += model.stat().st_size
-    return Carried(copied, size, present, left)
+    if checkpoints and snapshot:
+        for stale in sorted((Path(destination) / RESUME_KIND).glob("*.pt")):
+            if not (Path(source) / RESUME_KIND / stale.name).exists():
+                stale.unlink()
+                checksum_path(stale).unlink(missing_ok=True)
+                dropped += 1
+    return Carried(copied, size, present, left, dropped)
+
+
+def _copy_with_sidecar(model: Path, target: Path) -> None:
+    """Copy ``model`` to ``target`` under a temporary name, rename it, then copy its sidecar
+    (the old sidecar removed first: a cut copy leaves a file without one, never new bytes
+    beside an old file's sidecar)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=target.parent, suffix=".tmp")
+    os.close(handle)
+    shutil.copyfile(model, temporary)
+    checksum_path(target).unlink(missing_ok=True)
+    os.replace(temporary, target)
+    shutil.copyfile(checksum_path(model), checksum_path(target))
+
+
+def _digest(path: Path) -> str:
+    """The SHA-256 its sidecar records for ``path``."""
+    return checksum_path(path).read_text().strip()
 
 
 def _intact(path: Path) -> bool:
     """Whether ``path`` exists with a SHA-256 sidecar that matches its bytes."""
     checksum = checksum_path(path)
-    return path.exists() and checksum.exists() and checksum.read_text().strip() == sha256_of(path)
+    return path.exists() and checksum.exists() and _digest(path) == sha256_of(path)
 
 
 def import_generated(source: str, folder: Path, stem: str) -> ModuleType:
