@@ -196,7 +196,7 @@ def test_an_export_with_checkpoints_is_a_snapshot_and_an_import_keeps_those_alre
     CheckpointCache(here).save("kkl-resume", under_way, {"step": 600})
     CheckpointCache(here).remove("kkl-resume", finished)
     out = export()
-    assert "exported 1 model (" in out and "1 finished trainings' checkpoints dropped" in out
+    assert "exported 1 model (" in out and "dropped 1 checkpoint of finished trainings" in out
     assert CheckpointCache(travelling).load("kkl-resume", under_way)["step"] == 600
     assert CheckpointCache(travelling).load("kkl-resume", finished) is None
     assert sorted(p.name for p in (travelling / "kkl-resume").iterdir()) == sorted(

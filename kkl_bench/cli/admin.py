@@ -155,7 +155,8 @@ def manage_cache(args: argparse.Namespace) -> int:
             f"{source} to {destination}; {carried.present} already there"
             + (f"; {carried.left} left (damaged, or being written)" if carried.left else "")
             + (
-                f"; {carried.dropped} finished trainings' checkpoints dropped"
+                f"; dropped {carried.dropped} checkpoint{'s' * (carried.dropped != 1)} of "
+                "finished trainings"
                 if carried.dropped
                 else ""
             )
