@@ -44,23 +44,49 @@ def test_the_plan_covers_the_source_cells_and_counts_their_recorded_cost(publish
         scoring = (cells["estimate_us_per_step"] * 1e-6 * cells["n_test"] * 1001).sum()
         fit = cells["fit_time_s"].iloc[0]
         assert planned_job.estimate_s == pytest.approx(fit + scoring)
-    assert "2 fits of 2 rows to make 5 cells" in planned.describe()
+    assert all(planned_job.trains for planned_job in planned.jobs)
+    assert "2 jobs of 2 rows to make 5 cells (0 of 5 already done): 2 fits, 0 scoring only" in (
+        planned.describe()
+    )
 
 
-def test_a_model_several_rows_share_is_counted_once():
+def test_a_model_several_jobs_share_is_counted_once():
     spent = {"phase1": {"seconds": 100.0}, "phase2": {"seconds": 10.0}}
     cells = [
-        {"estimator": row, "task": "duffing/zero@v1", "seed": 0, "fit_report": {"spent": report}}
-        for row, report in (("a", spent), ("b", {**spent, "phase2": {"seconds": 20.0}}))
+        {
+            "estimator": row,
+            "task": f"duffing/{regime}@v1",
+            "seed": 0,
+            "fit_report": {"spent": report},
+        }
+        for row, regime, report in (
+            ("a", "zero", spent),
+            ("a", "square", spent),
+            ("b", "zero", {**spent, "phase2": {"seconds": 20.0}}),
+        )
     ]
     frame = pd.DataFrame(cells).assign(estimate_us_per_step=float("nan"), fit_time_s=1.0)
     records = regenerate._CostRecords(frame)
-    task = Task("duffing", "zero")
-    assert records.seconds(Job("a", "duffing", (task,), 0)) == 110.0
-    assert records.seconds(Job("b", "duffing", (task,), 0)) == 20.0
+    zero, square = Task("duffing", "zero"), Task("duffing", "square")
+    assert records.seconds(Job("a", "duffing", (zero,), 0)) == (110.0, 0.0)
+    assert records.seconds(Job("b", "duffing", (zero,), 0)) == (20.0, 0.0)
     resumed = regenerate._CostRecords(frame.assign(system="duffing"))
-    resumed.made([("a", "duffing/zero@v1", 0)])  # a's cell is done: its Phase 1 is trained
-    assert resumed.seconds(Job("b", "duffing", (task,), 0)) == 20.0
+    resumed.made([("a", "duffing/zero@v1", 0)])  # a's cell is done: its models are trained
+    assert resumed.seconds(Job("b", "duffing", (zero,), 0)) == (20.0, 0.0)
+    assert resumed.seconds(Job("a", "duffing", (square,), 0)) == (0.0, 0.0)  # a only scores
+
+
+def test_a_job_that_only_scores_is_counted_as_such_and_keeps_its_scoring_estimate():
+    job = Job("ekf", "duffing", (Task("duffing", "zero"),), 0)
+    scoring_only = regenerate.PlannedJob(None, job, fit_s=0.0, scoring_s=5.0, rate=3.0)
+    fit = regenerate.PlannedJob(None, job, fit_s=10.0, scoring_s=5.0, rate=3.0)
+    assert not scoring_only.trains and scoring_only.expected_s == 5.0
+    assert fit.trains and fit.expected_s == 35.0  # the measured rate scales the training only
+    described = regenerate.Plan([scoring_only, fit], cells=2, done=0).describe()
+    assert "2 jobs of 1 rows to make 2 cells (0 of 2 already done): 1 fits, 1 scoring only" in (
+        described
+    )
+    assert "  ekf: 1 fits, 1 scoring only, 0.01 core-hours" in described
 
 
 def test_a_resumed_plan_counts_each_row_s_fits_left_at_the_rate_its_finished_fits_took(
@@ -85,8 +111,8 @@ def test_a_resumed_plan_counts_each_row_s_fits_left_at_the_rate_its_finished_fit
     assert resumed.rates.by_row == {"ekf": 2.0} and resumed.rates.overall == 2.0
     ekf, ukf = resumed.jobs
     assert (ekf.rate, ukf.rate) == (2.0, 1.0)  # the UKF has no finished fit: its estimate
-    assert resumed.expected_s == pytest.approx(2 * ekf.estimate_s + ukf.estimate_s)
-    assert "The 2 fits finished in this folder took 2.00 times their estimates (ekf 2.00)" in (
+    assert resumed.expected_s == pytest.approx(2 * ekf.fit_s + ekf.scoring_s + ukf.estimate_s)
+    assert "The 2 jobs finished in this folder took 2.00 times their estimates (ekf 2.00)" in (
         resumed.describe()
     )
 
@@ -123,14 +149,14 @@ def test_an_interrupted_regeneration_resumes_and_makes_each_cell_once(
 
     assert main(argv) == 0  # resumed: the UKF's job only
     out = capsys.readouterr().out
-    assert "1 fits of 1 rows to make 2 cells (3 of 5 already done)" in out
+    assert "1 jobs of 1 rows to make 2 cells (3 of 5 already done): 1 fits" in out
     written = json.loads((into / ledger.LEDGER_FILE).read_text())["jobs"]
     assert sorted(record["cells"] for record in written.values()) == [2, 3]
     cells = load_results(into)
     assert len(cells) == 5 and not cells.duplicated(["estimator", "task", "seed"]).any()
     assert set(cells["status"]) == {"ok"}
     assert main(argv) == 0  # nothing left to do
-    assert "0 fits of 0 rows to make 0 cells (5 of 5 already done)" in capsys.readouterr().out
+    assert "0 jobs of 0 rows to make 0 cells (5 of 5 already done)" in capsys.readouterr().out
     summary = ledger.ledger_summary(ledger.read_ledger(into))
     assert summary["jobs"] == 2 and summary["cells"] == 5 and summary["core_hours"] > 0
 
@@ -195,7 +221,7 @@ def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, t
     resumed = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
     assert [job.banked_s for job in resumed.jobs] == [1000.0, 0.0]
     assert resumed.jobs[0].work_done_s == resumed.jobs[0].estimate_s  # at most its estimate
-    assert "1 of the fits resume killed attempts, which spent 0.28 core-hours" in resumed.describe()
+    assert "1 of the jobs resume killed attempts, which spent 0.28 core-hours" in resumed.describe()
     jobs = regenerate.run(resumed, into)["jobs"]
     assert 1000 < jobs[first]["seconds"] < 1100 and 2000 < jobs[first]["wall_seconds"] < 2100
     other = planned.jobs[1].key

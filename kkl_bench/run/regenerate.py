@@ -8,8 +8,10 @@ would run it. Nothing in the source folder is written. A job's cost is estimated
 the source cells' own records (the training seconds stored with their models, the
 Phase-1 models the KKL rows share counted once, and their scoring time), so the plan
 states its core-hours before it starts, and the progress bar counts estimated seconds
-of work, not cells. A resumed regeneration also says how many times their estimates
-the fits it finished took, and counts each row's remaining fits at its row's rate
+of work, not cells. A job is a fit (it trains a model) or scores only (its models are
+trained by an earlier job, or already, for cells of other tracks). A resumed
+regeneration also says how many times their estimates the jobs it finished took, and
+counts the training of each row's remaining jobs at its row's rate
 (:func:`measured_rates`).
 
 The run is resumable like ``kkl-bench run``: cells already in the target folder are
@@ -52,21 +54,38 @@ from kkl_bench.support.executors import execute
 @dataclass(frozen=True)
 class PlannedJob:
     """One harness job of a regeneration, with the spec of its row's run, its estimated
-    wall time (s, one thread, from the source cells' records), the processor seconds its
-    killed attempts already spent (:func:`~kkl_bench.run.ledger.banked_seconds`) and
-    ``rate``, how many times their estimates the finished fits of its row took in this
-    regeneration (:func:`measured_rates`; 1 before any of its row finished)."""
+    wall time (s, one thread, from the source cells' records) split into ``fit_s``, the
+    training of the models it is the first to need, and ``scoring_s``, the scoring of its
+    cells; the processor seconds its killed attempts already spent
+    (:func:`~kkl_bench.run.ledger.banked_seconds`); and ``rate``, how many times their
+    estimates the finished jobs of its row took in this regeneration
+    (:func:`measured_rates`; 1 before any of its row finished)."""
 
     spec: RunSpec
     job: Job
-    estimate_s: float
+    fit_s: float
+    scoring_s: float
     banked_s: float = 0.0
     rate: float = 1.0
 
     @property
+    def estimate_s(self) -> float:
+        return self.fit_s + self.scoring_s
+
+    @property
+    def trains(self) -> bool:
+        """Whether it trains a model. A job that does not scores cells from models already
+        in the target folder's cells (a resumed regeneration whose other tracks' cells of
+        the same models are done), trained by an earlier job of the plan, or whose source
+        cells recorded no training time."""
+        return self.fit_s > 0
+
+    @property
     def expected_s(self) -> float:
-        """Its estimate at the rate measured so far: what the progress bar counts."""
-        return self.estimate_s * self.rate
+        """Its estimate with its training at the rate measured so far (what the progress
+        bar counts): a row's rate is training-dominated, and a job that trains nothing
+        keeps its scoring estimate."""
+        return self.fit_s * self.rate + self.scoring_s
 
     @property
     def work_done_s(self) -> float:
@@ -105,26 +124,26 @@ class Plan:
         return sum(planned.expected_s for planned in self.jobs)
 
     def describe(self) -> str:
-        """The plan in a few lines: rows, fits, cells, estimated core-hours."""
+        """The plan in a few lines: rows, jobs (fits and scoring only), cells, estimated
+        core-hours."""
         rows = pd.Series([planned.job.estimator for planned in self.jobs]).value_counts()
         lines = [
-            f"{len(self.jobs)} fits of {rows.size} rows to make {self.cells - self.done} "
-            f"cells ({self.done} of {self.cells} already done); estimated "
+            f"{len(self.jobs)} jobs of {rows.size} rows to make {self.cells - self.done} "
+            f"cells ({self.done} of {self.cells} already done): {_fits(self.jobs)}; estimated "
             f"{self.estimate_s / 3600:.1f} core-hours (from the source cells' recorded "
-            "training and scoring times, one thread a fit)"
+            "training and scoring times, one thread a job)"
         ]
-        by_row = {
-            row: sum(p.estimate_s for p in self.jobs if p.job.estimator == row)
-            for row in rows.index
-        }
+        by_row = {row: [p for p in self.jobs if p.job.estimator == row] for row in rows.index}
         lines += [
-            f"  {row}: {rows[row]} fits, {seconds / 3600:.2f} core-hours"
-            for row, seconds in sorted(by_row.items(), key=lambda item: -item[1])
+            f"  {row}: {_fits(jobs)}, {sum(p.estimate_s for p in jobs) / 3600:.2f} core-hours"
+            for row, jobs in sorted(
+                by_row.items(), key=lambda item: -sum(p.estimate_s for p in item[1])
+            )
         ]
         resumed = [planned for planned in self.jobs if planned.banked_s > 0]
         if resumed:
             lines.append(
-                f"{len(resumed)} of the fits resume killed attempts, which spent "
+                f"{len(resumed)} of the jobs resume killed attempts, which spent "
                 f"{sum(p.banked_s for p in resumed) / 3600:.2f} core-hours"
             )
         if self.rates is not None:
@@ -132,48 +151,55 @@ class Plan:
         return "\n".join(lines)
 
 
+def _fits(jobs: list[PlannedJob]) -> str:
+    """How many of ``jobs`` train a model and how many only score."""
+    fits = sum(planned.trains for planned in jobs)
+    return f"{fits} fits, {len(jobs) - fits} scoring only"
+
+
 @dataclass(frozen=True)
 class MeasuredRates:
-    """How many times their estimates the fits a regeneration finished took (processor
+    """How many times their estimates the jobs a regeneration finished took (processor
     seconds over estimated seconds, from its ledger), per row and over all. Estimates come
     from the source cells' records, made on another machine, at another commit and often
     under another training rule, and the rows' rates differ widely, so a row's rate is
-    applied to its own fits only."""
+    applied to its own jobs' training only."""
 
     by_row: dict[str, float]
     overall: float
-    fits: int
+    jobs: int
 
     def rate(self, row: str) -> float:
-        """``row``'s measured rate; 1 (its estimate) for a row with no finished fit."""
+        """``row``'s measured rate; 1 (its estimate) for a row with no finished job."""
         return self.by_row.get(row, 1.0)
 
     def describe(self, expected_s: float) -> str:
         rows = ", ".join(f"{row} {rate:.2f}" for row, rate in self.by_row.items())
         return (
-            f"The {self.fits} fits finished in this folder took {self.overall:.2f} times "
-            f"their estimates ({rows}); with each of those rows at its rate and the others "
-            f"at their estimates, the fits left take about {expected_s / 3600:.1f} core-hours"
+            f"The {self.jobs} jobs finished in this folder took {self.overall:.2f} times "
+            f"their estimates ({rows}); with the training of each of those rows at its rate "
+            f"and the others at their estimates, the jobs left take about "
+            f"{expected_s / 3600:.1f} core-hours"
         )
 
 
 def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
-    """The rates of the finished fits of ``ledger`` (:func:`~kkl_bench.run.ledger.read_ledger`)
+    """The rates of the finished jobs of ``ledger`` (:func:`~kkl_bench.run.ledger.read_ledger`)
     whose estimates are positive; None if there are none."""
     seconds: dict[str, float] = {}
     estimated: dict[str, float] = {}
-    fits = 0
+    jobs = 0
     for key, record in ledger["jobs"].items():
         if record["estimate_s"] > 0:
             row = _row_of(key)
             seconds[row] = seconds.get(row, 0.0) + record["seconds"]
             estimated[row] = estimated.get(row, 0.0) + record["estimate_s"]
-            fits += 1
-    if not fits:
+            jobs += 1
+    if not jobs:
         return None
     by_row = {row: seconds[row] / estimated[row] for row in seconds}
     overall = sum(seconds.values()) / sum(estimated.values())
-    return MeasuredRates(by_row, overall, fits)
+    return MeasuredRates(by_row, overall, jobs)
 
 
 def _row_of(key: str) -> str:
@@ -232,7 +258,7 @@ def plan(
                 job = Job(job.estimator, job.system, tasks, job.seed)
                 banked = banked_seconds(into, job_key(job))
                 rate = 1.0 if rates is None else rates.rate(job.estimator)
-                jobs.append(PlannedJob(spec, job, known.seconds(job), banked, rate))
+                jobs.append(PlannedJob(spec, job, *known.seconds(job), banked, rate))
     return Plan(jobs, len(wanted), done, rates)
 
 
@@ -254,11 +280,13 @@ class _CostRecords:
             for phase, seconds in phase_seconds(cell).items():
                 self.trained.add((cell.system, cell.seed, phase, seconds))
 
-    def seconds(self, job: Job) -> float:
-        """The estimated wall time of ``job``. A model several rows share (a Phase-1 model,
-        the nominal network a ``+logged`` row fine-tunes) reads the same training seconds
-        in each: it is counted by the first job that needs it only, and not at all if a
-        cell made from it is already in the target folder."""
+    def seconds(self, job: Job) -> tuple[float, float]:
+        """The estimated wall time of ``job``: the seconds its models train and the seconds
+        its cells are scored in. A model several jobs share (a Phase-1 model the KKL rows
+        load, the nominal network a ``+logged`` row fine-tunes, one model scored on several
+        tracks) reads the same training seconds in each: it is counted by the first job
+        that needs it only, and not at all if a cell made from it is already in the target
+        folder."""
         cells = [self.cells[(job.estimator, task.id, job.seed)] for task in job.tasks]
         fit = 0.0
         for phase, seconds in phase_seconds(cells[0]).items():
@@ -269,7 +297,7 @@ class _CostRecords:
         scoring = sum(
             _scoring_seconds(cell, task) for cell, task in zip(cells, job.tasks, strict=True)
         )
-        return fit + scoring
+        return fit, scoring
 
 
 def phase_seconds(cell) -> dict[str, float]:
