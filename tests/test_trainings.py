@@ -40,6 +40,7 @@ def cells():
                 "estimator": row,
                 "system": "duffing",
                 "task": f"duffing/{regime}@v1",
+                "regime": regime,
                 "seed": seed,
                 "fit_report": fit,
                 "rmse_mean": rmse,
@@ -76,6 +77,22 @@ def test_a_rows_rmse_is_compared_on_the_cells_both_folders_hold():
     assert math.isclose(change.loc["ekf", "after / before"], 0.5)
 
 
+def test_a_rows_rmse_change_by_regime_keeps_the_regimes_apart():
+    after = cells().sort_values("regime", kind="stable")  # square's cells first
+    before = after.assign(rmse_mean=after["rmse_mean"] * np.where(after["regime"] == "zero", 2, 4))
+    change = trainings.rmse_change(before, after, by_regime=True).set_index(["Row", "Regime"])
+    assert list(change.index) == [  # the paper's order of regimes, whatever the cells' order
+        ("curriculum_kkl", "zero"),
+        ("curriculum_kkl", "square"),
+        ("ekf", "zero"),
+    ]
+    zero, square = change.loc[("curriculum_kkl", "zero")], change.loc[("curriculum_kkl", "square")]
+    assert (zero["Cells"], square["Cells"]) == (2, 2)
+    assert zero["RMSE after"] == pytest.approx((0.1 + 1.1) / 2)
+    assert zero["after / before"] == pytest.approx(0.5)
+    assert square["after / before"] == pytest.approx(0.25)
+
+
 def test_no_ratio_is_given_against_a_mean_that_a_diverged_trajectory_made_infinite():
     after = cells()
     before = after.assign(rmse_mean=after["rmse_mean"] * 2)
@@ -96,6 +113,10 @@ def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, cap
     assert "| autonomous_kkl | vdp      | phase1_log.decoder |" in steps and "ekf" not in steps
     assert "of 1 learned cells" in converged  # the filter's cell is not a learned one
     assert "| ekf " in change and change.count("|                1 |") == 2  # after / before
+    assert main(["trainings", "--results", results, "--before", results, "--by-regime"]) == 0
+    assert "| Row            | System   | Regime   |" in capsys.readouterr().out.split("\n\n")[2]
+    assert main(["trainings", "--results", results, "--by-regime"]) == 2
+    assert "--by-regime compares with --before DIR" in capsys.readouterr().err
     filters = str(tmp_path / "filters")
     assert (
         main(

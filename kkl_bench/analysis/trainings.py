@@ -16,6 +16,7 @@ import math
 import numpy as np
 import pandas as pd
 
+from kkl_bench.analysis.summary import REGIME_TITLES, in_paper_order
 from kkl_bench.support.convergence import (
     DIVERGED,
     NO,
@@ -190,17 +191,18 @@ def converged_sentence(verdicts: pd.DataFrame) -> str:
     )
 
 
-def rmse_change(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
-    """Per row and system, the mean RMSE over the cells (task and seed) that both
-    ``before`` and ``after`` hold, in each, and their ratio (after / before; none where
-    either mean is not finite, as a diverged trajectory leaves it); a row or system one of
-    them lacks is left out."""
+def rmse_change(before: pd.DataFrame, after: pd.DataFrame, by_regime: bool = False) -> pd.DataFrame:
+    """Per row and system (and regime, ``by_regime``), the mean RMSE over the cells (task
+    and seed) that both ``before`` and ``after`` hold, in each, and their ratio (after /
+    before; none where either mean is not finite, as a diverged trajectory leaves it); a
+    row or system one of them lacks is left out."""
     key = ["estimator", "task", "seed"]
-    both = before[[*key, "system", "rmse_mean"]].merge(
+    both = before[[*key, "system", "regime", "rmse_mean"]].merge(
         after[[*key, "rmse_mean"]], on=key, suffixes=(" before", " after")
     )
+    groups = ["estimator", "system", "regime"] if by_regime else ["estimator", "system"]
     table = (
-        both.groupby(["estimator", "system"], sort=False)
+        both.groupby(groups, sort=False)
         .agg(
             cells=("task", "size"),
             before=("rmse_mean before", "mean"),
@@ -208,12 +210,20 @@ def rmse_change(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
         )
         .reset_index()
     )
+    if by_regime:  # each row and system's regimes in the paper's order, the others after
+        order = in_paper_order(table["regime"], REGIME_TITLES)
+        table = table.assign(
+            group=table.groupby(["estimator", "system"], sort=False).ngroup(),
+            rank=table["regime"].map(order.index),
+        )
+        table = table.sort_values(["group", "rank"], kind="stable").drop(columns=["group", "rank"])
     finite = np.isfinite(table["before"]) & np.isfinite(table["after"])
     table["after / before"] = (table["after"] / table["before"]).where(finite)
     return table.rename(
         columns={
             "estimator": "Row",
             "system": "System",
+            "regime": "Regime",
             "cells": "Cells",
             "before": "RMSE before",
             "after": "RMSE after",

@@ -68,8 +68,9 @@ def add_parser(commands) -> None:
         "track's cells, each fit once): the fits, their steps, how many stopped at the "
         "plateau, at the cap or diverged (protocol 6.5), and the median step whose state was "
         "kept; then how many of the track's learned cells the board reads as converged. "
-        "With --before, each row's mean RMSE per system against another results "
-        "folder's, on the cells both hold (a refit's before and after).",
+        "With --before, each row's mean RMSE per system (and regime, with --by-regime) "
+        "against another results folder's, on the cells both hold (a refit's before and "
+        "after).",
     )
     add_reading_arguments(fits)
     fits.add_argument(
@@ -77,6 +78,11 @@ def add_parser(commands) -> None:
     )
     fits.add_argument(
         "--before", type=Path, metavar="DIR", help="results to compare each row's RMSE with"
+    )
+    fits.add_argument(
+        "--by-regime",
+        action="store_true",
+        help="with --before: compare per row, system and regime (default: per row and system)",
     )
     fits.set_defaults(handler=print_trainings)
 
@@ -124,5 +130,8 @@ def print_trainings(args: argparse.Namespace) -> int:
     print("\n" + trainings.converged_sentence(trainings.cell_verdicts(results)))
     if args.before is not None:
         before = of_track(load_results(args.before, profile=results["profile"].iloc[0]), args.track)
-        print("\n" + markdown.table(Table(trainings.rmse_change(before, results), floatfmt=".4g")))
+        change = trainings.rmse_change(before, results, by_regime=args.by_regime)
+        print("\n" + markdown.table(Table(change, floatfmt=".4g")))
+    elif args.by_regime:
+        raise ValueError("--by-regime compares with --before DIR; name the folder to compare with")
     return exit_status(args, damaged)
