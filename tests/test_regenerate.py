@@ -234,10 +234,10 @@ def test_the_board_says_how_many_of_its_cells_the_regeneration_wrote(published, 
     regenerate.run(regenerate.plan(load_results(published), PROFILE, into, tmp_path / "c"), into)
     summary = ledger.ledger_summary(ledger.read_ledger(into))
     assert regeneration_sentence(summary, 5).startswith(
-        "Written by `kkl-bench regenerate`: all 5 cells, by 2 fits, in **"
+        "Written by `kkl-bench regenerate`: all 5 cells, by 2 jobs (fits, and jobs that only "
     )
     part = regeneration_sentence(summary, 12)
-    assert "5 of the 12 cells (the others' runs are listed below), by 2 fits" in part
+    assert "5 of the 12 cells (the others' runs are listed below), by 2 jobs" in part
     assert "not written by `kkl-bench regenerate`" in regeneration_sentence(None, 12)
 
 

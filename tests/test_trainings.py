@@ -77,6 +77,19 @@ def test_a_rows_rmse_is_compared_on_the_cells_both_folders_hold():
     assert math.isclose(change.loc["ekf", "after / before"], 0.5)
 
 
+def test_the_converged_share_is_counted_per_track_over_learned_cells_only():
+    paper = cells().assign(track="paper")  # the plateau on seed 0, the cap on seed 1: `no`
+    fit = report(12000, best=11800)
+    plateau = {key: fit[key] for key in ("phase1_log", "spent")}  # stopped by the rule only
+    hard = paper.assign(track="hard", fit_report=[plateau] * 4 + [{}])
+    sentence = trainings.converged_by_track(pd.concat([paper, hard], ignore_index=True))
+    assert sentence.endswith(  # tracks in order of name; the filter's cell is not counted
+        "by track: `hard` 2 of 2 (100.0%); `paper` 0 of 2 (0.0%; 2 no)."
+    )
+    filters = paper[paper["estimator"] == "ekf"]
+    assert trainings.converged_by_track(filters) == ""
+
+
 def test_a_rows_rmse_change_by_regime_keeps_the_regimes_apart():
     after = cells().sort_values("regime", kind="stable")  # square's cells first
     before = after.assign(rmse_mean=after["rmse_mean"] * np.where(after["regime"] == "zero", 2, 4))

@@ -191,6 +191,30 @@ def converged_sentence(verdicts: pd.DataFrame) -> str:
     )
 
 
+def converged_by_track(cells: pd.DataFrame) -> str:
+    """How many learned cells of each track read Converged ``yes`` (:func:`cell_verdicts`),
+    with the other verdicts counted, as one sentence (``cells``: every track's, with a
+    ``track`` column); empty if no track has a learned cell."""
+    parts = []
+    for track, of_track in cells.groupby("track", sort=True):
+        counts = cell_verdicts(of_track)["converged"].value_counts()
+        if counts.empty:
+            continue
+        others = ", ".join(
+            f"{counts[label]} {label}" for label in (NO, DIVERGED, UNRECORDED) if label in counts
+        )
+        parts.append(
+            f"`{track}` {counts.get(YES, 0)} of {counts.sum()} "
+            f"({counts.get(YES, 0) / counts.sum():.1%}{'; ' + others if others else ''})"
+        )
+    if not parts:
+        return ""
+    return (
+        "Learned cells whose Converged reads `yes` (per row, system and task, over its "
+        f"seeds' fits), by track: {'; '.join(parts)}."
+    )
+
+
 def rmse_change(before: pd.DataFrame, after: pd.DataFrame, by_regime: bool = False) -> pd.DataFrame:
     """Per row and system (and regime, ``by_regime``), the mean RMSE over the cells (task
     and seed) that both ``before`` and ``after`` hold, in each, and their ratio (after /

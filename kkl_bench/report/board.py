@@ -391,9 +391,12 @@ def cost_finding(costs: pd.DataFrame) -> str:
 
 def cost_section(board: Board) -> Section:
     blocks: list = [Text(COST_TEXT + cost_source(board.costs)), cost_table(board.summary)]
-    diverged = trainings.diverged_sentence(board.paper_trainings)
-    if diverged:
-        blocks.append(Text(diverged))
+    every_cell = board.every_cell if board.every_cell is not None else board.results
+    said = [
+        trainings.converged_by_track(every_cell),
+        trainings.diverged_sentence(board.paper_trainings),
+    ]
+    blocks += [Text(sentence) for sentence in said if sentence]
     if board.costs is not None and not board.costs.empty:
         blocks += [
             Text(

@@ -232,10 +232,11 @@ def regeneration_sentence(summary: dict | None, cells: int) -> str:
         else f"{summary['cells']} of the {cells} cells (the others' runs are listed below)"
     )
     return (
-        f"Written by `kkl-bench regenerate`: {share}, by {summary['jobs']} fits, in "
-        f"**{summary['core_hours']:.1f} core-hours** measured (processor time, one thread a "
-        f"fit; {summary['estimated_core_hours']:.1f} estimated beforehand), "
-        f"at commit{'s' if len(summary['commits']) > 1 else ''} {commits}, the fits "
+        f"Written by `kkl-bench regenerate`: {share}, by {summary['jobs']} jobs (fits, and "
+        f"jobs that only scored trained models), in **{summary['core_hours']:.1f} "
+        f"core-hours** measured (processor time, one thread a job; "
+        f"{summary['estimated_core_hours']:.1f} estimated beforehand), "
+        f"at commit{'s' if len(summary['commits']) > 1 else ''} {commits}, the jobs "
         f"finishing between {summary['from']} and {summary['to']}."
     )
 
