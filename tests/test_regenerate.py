@@ -1,14 +1,18 @@
 """`kkl-bench regenerate`: the plan read from a results folder, its estimate, and a run
 interrupted and resumed that makes each cell once."""
 
+import io
 import json
 import subprocess
 import sys
+import time
 
 import pandas as pd
 import pytest
+from tqdm import tqdm
 
 from kkl_bench.cli import main
+from kkl_bench.cli.run import following
 from kkl_bench.report.provenance import regeneration_sentence
 from kkl_bench.run import harness, ledger, regenerate
 from kkl_bench.run.harness import Job
@@ -209,6 +213,40 @@ def test_a_killed_job_s_meter_counts_once_and_a_live_one_is_left(tmp_path):
     finally:
         live.kill()
         live.wait()
+
+
+def test_the_work_done_counts_running_jobs_processor_time_up_to_their_expected_work(tmp_path):
+    def planned(seed, fit_s, banked_s=0.0):
+        job = Job("kalmannet", "duffing", (Task("duffing", "zero"),), seed)
+        return regenerate.PlannedJob(None, job, fit_s, scoring_s=0.0, banked_s=banked_s)
+
+    long, short = planned(0, 100.0, banked_s=5.0), planned(1, 0.1)
+    plan = regenerate.Plan([long, short], cells=2, done=0)
+    done = regenerate.WorkDone(plan, tmp_path, time.time_ns())
+    assert done.seconds() == 5.0  # before anything runs: the killed attempt's banked work
+    children = [_metered_child(tmp_path, job.key) for job in (long, short)]
+    try:  # each has spent 0.3 s under its meter; the short job counts its 0.1 s only
+        assert 5.3 <= done.seconds() - 0.1 < 6.0
+        done.finish(long)
+        assert done.seconds() == pytest.approx(100.1)
+        later = regenerate.WorkDone(plan, tmp_path, time.time_ns())
+        assert later.seconds() == 5.0  # meters of attempts started before it are not its own
+    finally:
+        for child in children:
+            child.kill()
+            child.wait()
+
+
+def test_a_bar_follows_measured_work_and_stops_at_its_total():
+    bar = tqdm(total=10.0, file=io.StringIO())
+    done = [4.0]
+    with following(bar, lambda: done[0], every_s=0.01) as update:
+        time.sleep(0.1)
+        assert bar.n == 4.0  # set by the thread
+        done[0] = 12.0
+        update()
+        assert bar.n == 10.0  # at most its total
+    bar.close()
 
 
 def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, tmp_path):

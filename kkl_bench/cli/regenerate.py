@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 from kkl_bench.cli.common import add_cache_argument, add_jobs_argument
-from kkl_bench.cli.run import RESUME, advance, showing_jobs, work_bar
+from kkl_bench.cli.run import RESUME, following, showing_jobs, work_bar
 from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile
@@ -82,19 +83,18 @@ def regenerate_command(args: argparse.Namespace) -> int:
     if args.dry_run or not planned.jobs:
         return 0
     failed = 0
+    done = regenerate.WorkDone(planned, args.into, time.time_ns())
     with (
-        work_bar(
-            planned.expected_s,
-            "regenerate (estimated work)",
-            done_s=sum(p.work_done_s for p in planned.jobs),
-        ) as bar,
+        work_bar(planned.expected_s, "regenerate (estimated work)", done.seconds()) as bar,
         showing_jobs(bar, args.into / ".claims" / profile.name),
+        following(bar, done.seconds, ledger.METER_EVERY_S) as update,
     ):
 
         def progress(planned_job, outcome):
             nonlocal failed
             failed += sum(cell.status == "error" for cell in outcome.scored)
-            advance(bar, planned_job.expected_s - planned_job.work_done_s)
+            done.finish(planned_job)
+            update()
 
         try:
             written = regenerate.run(

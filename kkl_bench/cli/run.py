@@ -9,7 +9,7 @@ import statistics
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from tqdm import tqdm
@@ -202,6 +202,31 @@ def work_bar(total_s: float, desc: str, done_s: float = 0.0) -> tqdm:
         smoothing=0.0,
         bar_format=BAR,
     )
+
+
+@contextlib.contextmanager
+def following(bar: tqdm, done: Callable[[], float], every_s: float) -> Iterator[Callable[[], None]]:
+    """Set ``bar``'s position to ``done()`` (seconds of work, at most its total) every
+    ``every_s`` seconds while the block runs, for work whose progress is measured rather
+    than counted; yields the function that does it at once (after a job ends)."""
+    lock, stop = threading.Lock(), threading.Event()
+
+    def update() -> None:
+        with lock:
+            bar.n = min(done(), bar.total)
+            bar.refresh()
+
+    def follow() -> None:
+        while not stop.wait(every_s):
+            update()
+
+    thread = threading.Thread(target=follow, daemon=True)
+    thread.start()
+    try:
+        yield update
+    finally:
+        stop.set()
+        thread.join()
 
 
 def advance(bar: tqdm, seconds: float) -> None:

@@ -146,6 +146,20 @@ def banked_seconds(folder: Path, key: str) -> float:
     return sum(float(spent.get("seconds", 0.0)) for _, spent in _killed_meters(folder, key))
 
 
+def running_seconds(folder: Path, key: str, since_ns: int) -> float:
+    """Processor seconds the attempts of the job ``key`` started at or after ``since_ns``
+    (:func:`time.time_ns`: this invocation's, which are running or have just ended) have
+    spent so far, as their meters last said (at most :data:`METER_EVERY_S` old). Reads
+    the meters without their locks, so it can be asked often and creates nothing."""
+    total = 0.0
+    for path in _meter_folder(folder, key).glob("*.json"):
+        started = path.stem.rpartition("-")[2]
+        if started.isdigit() and int(started) >= since_ns:
+            with contextlib.suppress(OSError, ValueError):  # removed as its job ended
+                total += float(json.loads(path.read_text()).get("seconds", 0.0))
+    return total
+
+
 def _killed_meters(folder: Path, key: str) -> Iterator[tuple[Path, dict[str, float]]]:
     """Each meter of the job ``key`` that no live process holds, with what it holds; the
     meter's lock is held while the caller handles it."""

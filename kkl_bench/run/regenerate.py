@@ -44,6 +44,7 @@ from kkl_bench.run.ledger import (
     metered,
     read_ledger,
     record_job,
+    running_seconds,
 )
 from kkl_bench.run.results import recorded_seconds
 from kkl_bench.suite.task import Profile
@@ -180,6 +181,33 @@ class MeasuredRates:
             f"their estimates ({rows}); with the training of each of those rows at its rate "
             f"and the others at their estimates, the jobs left take about "
             f"{expected_s / 3600:.1f} core-hours"
+        )
+
+
+class WorkDone:
+    """How much of a plan's expected work (:attr:`PlannedJob.expected_s`) is done, for a
+    progress bar that moves while fits train, not only when they end: a finished job
+    counts its expected work, a running one the processor seconds it has spent (its
+    killed attempts' and, from its meter, this invocation's: ``since_ns``), at most its
+    expected work. Before anything runs it is the plan's banked work
+    (:attr:`PlannedJob.work_done_s`)."""
+
+    def __init__(self, planned: Plan, into: Path, since_ns: int) -> None:
+        self.jobs, self.into, self.since_ns = planned.jobs, into, since_ns
+        self.finished: set[str] = set()
+
+    def finish(self, planned_job: PlannedJob) -> None:
+        self.finished.add(planned_job.key)
+
+    def seconds(self) -> float:
+        return sum(
+            planned.expected_s
+            if planned.key in self.finished
+            else min(
+                planned.banked_s + running_seconds(self.into, planned.key, self.since_ns),
+                planned.expected_s,
+            )
+            for planned in self.jobs
         )
 
 
