@@ -75,10 +75,10 @@ class PlannedJob:
 
     @property
     def trains(self) -> bool:
-        """Whether it trains a model. A job that does not scores cells from models already
-        in the target folder's cells (a resumed regeneration whose other tracks' cells of
-        the same models are done), trained by an earlier job of the plan, or whose source
-        cells recorded no training time."""
+        """Whether it trains a model. A job that trains nothing only scores: its models
+        made the target folder's cells of other tracks (a resumed regeneration), or an
+        earlier job of the plan trains them, or its source cells recorded no training
+        time."""
         return self.fit_s > 0
 
     @property
