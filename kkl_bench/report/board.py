@@ -91,6 +91,11 @@ class Board:
     every_cell: pd.DataFrame | None = None
     regeneration: dict | None = None
 
+    @property
+    def cells_of_every_track(self) -> pd.DataFrame:
+        """``every_cell``, or the paper track's cells where the board was given no others."""
+        return self.every_cell if self.every_cell is not None else self.results
+
     @cached_property
     def paper_trainings(self) -> pd.DataFrame:
         """Every training of the paper track's fits (:func:`trainings.training_records`),
@@ -391,9 +396,8 @@ def cost_finding(costs: pd.DataFrame) -> str:
 
 def cost_section(board: Board) -> Section:
     blocks: list = [Text(COST_TEXT + cost_source(board.costs)), cost_table(board.summary)]
-    every_cell = board.every_cell if board.every_cell is not None else board.results
     said = [
-        trainings.converged_by_track(every_cell),
+        trainings.converged_by_track(board.cells_of_every_track),
         trainings.diverged_sentence(board.paper_trainings),
     ]
     blocks += [Text(sentence) for sentence in said if sentence]

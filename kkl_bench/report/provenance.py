@@ -247,7 +247,7 @@ def provenance_sections(board: Board) -> list[Section]:
         (key, ", ".join(values)) for key, values in _versions(board.results).items()
     ]
     versions = pd.DataFrame(facts, columns=["what", "value"])
-    cells = board.every_cell if board.every_cell is not None else board.results
+    cells = board.cells_of_every_track
     dirty = dirty_cells(cells, board.verifications)
     listed = [Text(dirty_sentence(dirty, len(cells)))]
     if not dirty.empty:
