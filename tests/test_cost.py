@@ -221,6 +221,8 @@ def test_flops_are_what_an_estimator_declares_or_its_layer_sizes_give():
     assert math.isnan(flops) and precision == "float32"
     with pytest.raises(ValueError, match=r"float16.*float32, float64"):
         cost.peak_gflops("float16")
+    with pytest.raises(ValueError, match=r"'float64' on cuda; valid: float32$"):
+        cost.peak_gflops("float64", device="cuda")
 
 
 def test_a_floor_adds_the_draws_and_transcendentals_a_row_declares():

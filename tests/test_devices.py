@@ -1,9 +1,12 @@
 """``--device``: resolution, the training block, CPU-side random draws, and the fit record.
 
-These tests run on the CPU and assume no GPU. The move to another device is
+Most of these tests run on the CPU and assume no GPU. The move to another device is
 checked on the ``meta`` device (tensors without data) and with a module that
-records where it is sent.
+records where it is sent. Where torch sees a CUDA GPU, the last test fits each kind
+of torch training on it and on the CPU.
 """
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -87,3 +90,34 @@ def test_the_cli_refuses_cuda_without_a_gpu_before_any_work(tmp_path, capsys):
     assert code == 2
     assert "torch sees no CUDA GPU" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+def _validation_curves(report, path=""):
+    """``(path, curve)`` for every ``validation_curve`` in a fit report, in order."""
+    if isinstance(report, dict):
+        for key, value in report.items():
+            if key == "validation_curve":
+                yield path, value
+            else:
+                yield from _validation_curves(value, f"{path}/{key}")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("estimator", ["dynamic_hyperkkl", "gru_observer", "kalmannet"])
+def test_a_gpu_fit_sees_the_cpu_fits_samples_and_estimates_on_the_cpu(estimator):
+    check = Conformance(estimator)
+    fits = {  # each from an empty cache: a cached model would not train again
+        device: check.prototype.clone().fit(
+            dataclasses.replace(check.context, device=device, cache_dir=check.fresh_cache())
+        )
+        for device in ("cpu", "cuda")
+    }
+    reports = {device: fit.fit_report() for device, fit in fits.items()}
+    assert {spent["device"] for spent in reports["cuda"]["spent"].values()} == {"cuda"}
+    # the same initial weights and validation trajectories: the first training's error
+    # before its first step is the CPU's, to float32 rounding
+    (_, cpu_curve), *_ = _validation_curves(reports["cpu"])
+    (_, gpu_curve), *_ = _validation_curves(reports["cuda"])
+    assert gpu_curve[0][1] == pytest.approx(cpu_curve[0][1], rel=1e-5)
+    # the model came back to the CPU: it estimates from CPU arrays
+    assert np.isfinite(check.estimate(fits["cuda"])).all()

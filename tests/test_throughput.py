@@ -63,6 +63,7 @@ def test_a_fit_sums_its_trainings_by_the_steps_each_runs():
             "samples_per_s": [1e5, 1e3],
             "peak_gflops": [100.0, 100.0],
             "of_peak": [1.0, 0.1],
+            "device": ["cpu", "cpu"],
             "git_commit": ["abc", "abc"],
         }
     )
@@ -91,10 +92,24 @@ def test_the_table_shows_the_newest_measurement_and_the_one_before_it():
             "git_commit": commit,
         }
 
-    table = throughput.throughput_table(pd.DataFrame([measured("old", 1.0), measured("new", 0.5)]))
-    assert table[["Of peak", "Before", "Commit"]].to_dict("records") == [
-        {"Of peak": "20.0%", "Before": "10.0%", "Commit": "new"}
+    def on(device, commit, seconds):
+        return {**measured(commit, seconds), "device": device}
+
+    table = throughput.throughput_table(
+        pd.DataFrame([on("cpu", "old", 1.0), on("cuda", "old", 0.1), on("cpu", "new", 0.5)])
+    )
+    # one row per device; a device's Before is its own earlier measurement
+    assert table[["Device", "Of peak", "Before", "Commit"]].to_dict("records") == [
+        {"Device": "cuda", "Of peak": "100.0%", "Before": "-", "Commit": "old"},
+        {"Device": "cpu", "Of peak": "20.0%", "Before": "10.0%", "Commit": "new"},
     ]
+
+
+def test_a_measurement_from_before_rows_recorded_their_device_reads_cpu(tmp_path):
+    path = tmp_path / throughput.THROUGHPUT_FILE
+    columns = [column for column in throughput.COLUMNS if column != "device"]
+    pd.DataFrame([dict.fromkeys(columns, 1)]).to_csv(path, index=False)
+    assert throughput.read_throughput(path)["device"].tolist() == ["cpu"]
 
 
 def test_throughput_command_merges_its_rows_and_keeps_no_model(tmp_path, capsys, monkeypatch):
@@ -105,6 +120,7 @@ def test_throughput_command_merges_its_rows_and_keeps_no_model(tmp_path, capsys,
     stored = throughput.read_throughput(out / throughput.THROUGHPUT_FILE)
     assert set(stored["estimator"]) == {"autonomous_kkl"} and len(stored) > 1
     assert (stored["flops_per_step"] > 0).all() and (stored["fit_steps"] >= 1).all()
+    assert set(stored["device"]) == {"cpu"}  # the default, also where a GPU is seen
     assert "| autonomous_kkl |" in capsys.readouterr().out
     assert main([*args, "--steps", "1", "--out", str(out)]) == 0  # same commit: replaced
     assert len(throughput.read_throughput(out / throughput.THROUGHPUT_FILE)) == len(stored)
@@ -112,6 +128,14 @@ def test_throughput_command_merges_its_rows_and_keeps_no_model(tmp_path, capsys,
     unsupported = ["throughput", "--estimator", "ring_observer", "--system", "vdp"]
     assert main([*unsupported, "--profile", "quick", "--out", str(tmp_path / "none")]) == 0
     assert len(throughput.read_throughput(tmp_path / "none" / throughput.THROUGHPUT_FILE)) == 0
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_throughput_on_cuda_without_a_gpu_is_an_error_before_any_work(tmp_path, capsys):
+    args = ["throughput", "--estimator", "gru_observer", "--system", "vdp", "--profile", "quick"]
+    assert main([*args, "--device", "cuda", "--out", str(tmp_path)]) == 2
+    assert "torch sees no CUDA GPU" in capsys.readouterr().err
+    assert not (tmp_path / throughput.THROUGHPUT_FILE).exists()
 
 
 def test_render_only_without_a_measurement_says_what_to_run(tmp_path, capsys):

@@ -164,24 +164,27 @@ def fastest_round_robin(
     return best, counts
 
 
-def peak_gflops(precision: str, threads: int = 1, rounds: int = 5) -> float:
+def peak_gflops(precision: str, threads: int = 1, rounds: int = 5, device: str = "cpu") -> float:
     """This machine's peak, GFLOP/s: the best of ``rounds`` products of two
     :data:`PEAK_SIZE` square matrices on ``threads`` threads (numpy's BLAS for
-    ``float64``, torch for ``float32``; ``2 N^3`` flops each)."""
+    ``float64``, torch for ``float32``; ``2 N^3`` flops each), or on the GPU where
+    ``device`` is ``cuda`` (``float32`` only, each product waited for)."""
+    valid = ("float32", "float64") if device == "cpu" else ("float32",)
+    if precision not in valid:
+        raise ValueError(f"precision {precision!r} on {device}; valid: {', '.join(valid)}")
     rng = np.random.default_rng(0)
     a, b = rng.standard_normal((2, PEAK_SIZE, PEAK_SIZE))
+    multiply = np.matmul
     if precision == "float32":
-        a, b = torch.from_numpy(a).float(), torch.from_numpy(b).float()
+        a, b = (torch.from_numpy(m).float().to(device) for m in (a, b))
         multiply = torch.mm
-    elif precision == "float64":
-        multiply = np.matmul
-    else:
-        raise ValueError(f"precision {precision!r}; valid: float32, float64")
+    wait = torch.cuda.synchronize if device == "cuda" else lambda: None
     best = math.inf
     with thread_limit(threads):
         for _ in range(rounds + 1):  # the first is a warm-up
             start = time.perf_counter()
             multiply(a, b)
+            wait()
             best = min(best, time.perf_counter() - start)
     return 2 * PEAK_SIZE**3 / best / 1e9
 

@@ -32,6 +32,7 @@ from kkl_bench.report import markdown
 from kkl_bench.run import harness
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support.cache import default_cache_dir
+from kkl_bench.support.devices import DEVICES
 from kkl_bench.support.provenance import provenance
 
 
@@ -113,7 +114,8 @@ def add_parser(commands) -> None:
         description="Run each learned row's fit at the profile's sizes from an empty "
         "temporary cache (nothing is kept), with every training measured instead of run "
         "to the end: one optimizer step's matrix products counted, then --steps steps "
-        "timed, on --threads threads, beside this machine's float32 peak. Merges one row "
+        "timed, on --threads threads (or the GPU: --device), beside that device's float32 "
+        "peak. Merges one row "
         "per training into DIR/training-throughput.csv and prints the table protocol 6.5 "
         "shows.",
     )
@@ -139,6 +141,13 @@ def add_parser(commands) -> None:
         help="optimizer steps timed per training (default 20)",
     )
     add_threads_argument(throughput, "measuring")
+    throughput.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="cpu",
+        help="where the trainings run while measured: cpu (default: where the board's fits "
+        "train), cuda, or auto (cuda if torch sees a GPU); each row records it",
+    )
     throughput.add_argument(
         "--render-only",
         action="store_true",
@@ -277,6 +286,7 @@ def measure_throughput(args: argparse.Namespace) -> int:
             out,
             args.steps,
             args.threads,
+            args.device,
         )
         print(f"wrote {len(rows)} rows to {out}")
     stored = throughput.read_throughput(out)
