@@ -169,14 +169,18 @@ def cell_verdicts(cells: pd.DataFrame) -> pd.DataFrame:
     return verdicts[verdicts["converged"] != UNTRAINED].reset_index(drop=True)
 
 
+def _counted(counts: pd.Series, labels: tuple[str, ...]) -> str:
+    """``"N label"`` for each of ``labels`` that ``counts`` (verdicts' value counts) holds,
+    in that order, joined by commas."""
+    return ", ".join(f"{counts[label]} {label}" for label in labels if label in counts)
+
+
 def converged_sentence(verdicts: pd.DataFrame) -> str:
     """How many of the learned cells in ``verdicts`` (:func:`cell_verdicts`) read each
     verdict, with the share that converged, and where the others are (row and system, with
     their number of cells), as one sentence."""
     counts = verdicts["converged"].value_counts()
-    said = ", ".join(
-        f"{counts[label]} {label}" for label in (YES, NO, DIVERGED, UNRECORDED) if label in counts
-    )
+    said = _counted(counts, (YES, NO, DIVERGED, UNRECORDED))
     share = counts.get(YES, 0) / len(verdicts)
     others = [
         f"`{estimator}` on {system}, {label}: {len(group)}"
@@ -200,9 +204,7 @@ def converged_by_track(cells: pd.DataFrame) -> str:
         counts = cell_verdicts(of_track)["converged"].value_counts()
         if counts.empty:
             continue
-        others = ", ".join(
-            f"{counts[label]} {label}" for label in (NO, DIVERGED, UNRECORDED) if label in counts
-        )
+        others = _counted(counts, (NO, DIVERGED, UNRECORDED))
         parts.append(
             f"`{track}` {counts.get(YES, 0)} of {counts.sum()} "
             f"({counts.get(YES, 0) / counts.sum():.1%}{'; ' + others if others else ''})"
