@@ -9,6 +9,7 @@ import time
 
 import pandas as pd
 import pytest
+import torch
 from tqdm import tqdm
 
 from kkl_bench.cli import main
@@ -52,6 +53,9 @@ def test_the_plan_covers_the_source_cells_and_counts_their_recorded_cost(publish
     assert "2 jobs of 2 rows to make 5 cells (0 of 5 already done): 2 fits, 0 scoring only" in (
         planned.describe()
     )
+    assert {planned_job.spec.device for planned_job in planned.jobs} == {"cpu"}
+    elsewhere = regenerate.plan(source, PROFILE, tmp_path / "into", tmp_path / "c", device="auto")
+    assert {planned_job.spec.device for planned_job in elsewhere.jobs} == {"auto"}
 
 
 def test_a_model_several_jobs_share_is_counted_once():
@@ -173,6 +177,14 @@ def test_regenerate_refuses_its_source_as_target_and_unknown_names(published, ca
     assert "hold no estimator 'enkf'; valid: ekf, ukf" in capsys.readouterr().err
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_regenerate_on_cuda_without_a_gpu_is_an_error_before_any_work(published, tmp_path, capsys):
+    argv = ["regenerate", "--from", str(published), "--into", str(tmp_path / "into")]
+    assert main([*argv, "--profile", "quick", "--device", "cuda"]) == 2
+    assert "torch sees no CUDA GPU" in capsys.readouterr().err
+    assert not (tmp_path / "into").exists()
+
+
 METER_CHILD = """
 import sys, time
 from kkl_bench.run.ledger import metered
@@ -270,9 +282,20 @@ def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, t
 def test_the_board_says_how_many_of_its_cells_the_regeneration_wrote(published, tmp_path):
     into = tmp_path / "into"
     regenerate.run(regenerate.plan(load_results(published), PROFILE, into, tmp_path / "c"), into)
-    summary = ledger.ledger_summary(ledger.read_ledger(into))
+    written = ledger.read_ledger(into)
+    assert {record["device"] for record in written["jobs"].values()} == {"cpu"}
+    summary = ledger.ledger_summary(written)
     assert regeneration_sentence(summary, 5).startswith(
         "Written by `kkl-bench regenerate`: all 5 cells, by 2 jobs (fits, and jobs that only "
+    )
+    assert summary["gpu_jobs"] == 0 and "GPU" not in regeneration_sentence(summary, 5)
+    first = next(iter(written["jobs"].values()))
+    first["device"] = "cuda"
+    del next(reversed(written["jobs"].values()))["device"]  # a ledger from before: the CPU
+    on_gpu = ledger.ledger_summary(written)
+    assert on_gpu["gpu_jobs"] == 1
+    assert "one thread a job; 1 of the jobs trained on a GPU, whose time this counts only " in (
+        regeneration_sentence(on_gpu, 5)
     )
     part = regeneration_sentence(summary, 12)
     assert "5 of the 12 cells (the others' runs are listed below), by 2 jobs" in part

@@ -14,6 +14,8 @@ from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support.cache import default_cache_dir
+from kkl_bench.support.devices import DEVICES
+from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import EXECUTORS
 from kkl_bench.support.provenance import provenance
 
@@ -50,6 +52,13 @@ def add_parser(commands) -> None:
     add_cache_argument(parser)
     add_jobs_argument(parser, "fits")
     parser.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="cpu",
+        help="where torch estimators train: cpu (default: where the board's fits train, "
+        "and what its core-hours count), cuda or auto; each job's device goes to the ledger",
+    )
+    parser.add_argument(
         "--executor",
         choices=EXECUTORS,
         default="loky",
@@ -66,6 +75,8 @@ def regenerate_command(args: argparse.Namespace) -> int:
             "publish from it"
         )
     profile = get_profile(args.profile)
+    if args.scheduler is None:  # local workers: a missing GPU is an error before any work
+        resolve_device(args.device)
     source = regenerate.select(load_results(args.source), args.estimator, args.track, args.system)
     if source.empty:
         raise ValueError(f"{args.source} holds no cells of the selection")
@@ -77,7 +88,12 @@ def regenerate_command(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     planned = regenerate.plan(
-        source, profile, args.into, args.cache or default_cache_dir(), args.command_line
+        source,
+        profile,
+        args.into,
+        args.cache or default_cache_dir(),
+        args.command_line,
+        args.device,
     )
     print(planned.describe())
     if args.dry_run or not planned.jobs:
@@ -105,7 +121,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
             return 130
     summary = ledger.ledger_summary(written)
     print(
-        f"{summary['cells']} cells in {summary['jobs']} fits, {summary['core_hours']:.2f} "
+        f"{summary['cells']} cells in {summary['jobs']} jobs, {summary['core_hours']:.2f} "
         f"core-hours measured (estimated {summary['estimated_core_hours']:.2f}); {failed} "
         f"failed cells; results in {args.into}/{profile.name}/" + (f"; {RESUME}" if failed else "")
     )

@@ -231,10 +231,16 @@ def regeneration_sentence(summary: dict | None, cells: int) -> str:
         if summary["cells"] >= cells
         else f"{summary['cells']} of the {cells} cells (the others' runs are listed below)"
     )
+    on_gpu = (
+        f"; {summary['gpu_jobs']} of the jobs trained on a GPU, whose time this counts only "
+        "on the CPU"
+        if summary.get("gpu_jobs")
+        else ""
+    )
     return (
         f"Written by `kkl-bench regenerate`: {share}, by {summary['jobs']} jobs (fits, and "
         f"jobs that only scored trained models), in **{summary['core_hours']:.1f} "
-        f"core-hours** measured (processor time, one thread a job; "
+        f"core-hours** measured (processor time, one thread a job{on_gpu}; "
         f"{summary['estimated_core_hours']:.1f} estimated beforehand), "
         f"at commit{'s' if len(summary['commits']) > 1 else ''} {commits}, the jobs "
         f"finishing between {summary['from']} and {summary['to']}."

@@ -37,8 +37,10 @@ METER_EVERY_S = 30.0
 
 def read_ledger(folder: Path) -> dict[str, Any]:
     """The ledger of the regenerations that wrote into ``folder`` (empty if none):
-    ``jobs``: key -> ``{seconds, wall_seconds, estimate_s, cells, failed, git_commit,
-    finished_at}`` (``seconds``: processor time)."""
+    ``jobs``: key -> ``{seconds, wall_seconds, estimate_s, cells, failed, device,
+    git_commit, finished_at}`` (``seconds``: processor time; ``device``: where its torch
+    estimators trained, ``cpu`` or ``cuda``, absent in ledgers from before it was
+    recorded, whose jobs trained on the CPU)."""
     path = Path(folder) / LEDGER_FILE
     if not path.exists():
         return {"jobs": {}}
@@ -46,11 +48,18 @@ def read_ledger(folder: Path) -> dict[str, Any]:
 
 
 def record_job(
-    into: Path, key: str, times: dict[str, float], estimate_s: float, cells: int, failed: int
+    into: Path,
+    key: str,
+    times: dict[str, float],
+    estimate_s: float,
+    cells: int,
+    failed: int,
+    device: str = "cpu",
 ) -> None:
     """Add one finished job (its ``key``, ``times``: ``seconds`` of processor time and
-    ``wall_seconds``, its estimate, the cells it made and those that failed) to the ledger
-    in ``into``, written atomically; a job run again adds its times to those before."""
+    ``wall_seconds``, its estimate, the cells it made and those that failed, the device it
+    trained on) to the ledger in ``into``, written atomically; a job run again adds its
+    times to those before."""
     ledger = read_ledger(into)
     previous = ledger["jobs"].get(key, {})
     ledger["jobs"][key] = {
@@ -58,6 +67,7 @@ def record_job(
         "estimate_s": estimate_s,
         "cells": cells,
         "failed": failed,
+        "device": device,
         "git_commit": provenance()["git_commit"],
         "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
@@ -176,8 +186,9 @@ def _killed_meters(folder: Path, key: str) -> Iterator[tuple[Path, dict[str, flo
 
 
 def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
-    """What the board says of a regeneration: jobs, cells, core-hours measured, the
-    commits that ran them, first and last finish; None without one."""
+    """What the board says of a regeneration: jobs, cells, core-hours measured, the jobs
+    that trained on a GPU, the commits that ran them, first and last finish; None without
+    one."""
     jobs = ledger.get("jobs", {})
     if not jobs:
         return None
@@ -187,6 +198,7 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
         "cells": sum(record["cells"] for record in jobs.values()),
         "core_hours": sum(record["seconds"] for record in jobs.values()) / 3600,
         "estimated_core_hours": sum(record["estimate_s"] for record in jobs.values()) / 3600,
+        "gpu_jobs": sum(record.get("device", "cpu") == "cuda" for record in jobs.values()),
         "commits": sorted({str(record["git_commit"]) for record in jobs.values()}),
         "from": finished[0],
         "to": finished[-1],

@@ -49,6 +49,7 @@ from kkl_bench.run.ledger import (
 from kkl_bench.run.results import recorded_seconds
 from kkl_bench.suite.task import Profile
 from kkl_bench.suite.tracks import get_track
+from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import execute
 
 
@@ -244,9 +245,11 @@ def plan(
     into: Path,
     cache_dir: Path,
     command: str | None = None,
+    device: str = "cpu",
 ) -> Plan:
     """The regeneration of the cells of ``source`` (:func:`~kkl_bench.run.results.load_results`
-    of the source folder, narrowed as wanted, of ``profile``) into the folder ``into``.
+    of the source folder, narrowed as wanted, of ``profile``) into the folder ``into``, its
+    torch estimators trained on ``device`` (:mod:`kkl_bench.support.devices`).
 
     Each row is planned as a run of that row alone over the systems, tracks and seeds of
     its source cells (``<name>+logged`` and ``<name>+truth`` rows as runs of theirs), and
@@ -271,6 +274,7 @@ def plan(
             tracks=tuple(dict.fromkeys(cells["track"])),
             command=command,
             own_rows_only=not derived,
+            device=device,
         )
         todo, cached = harness.plan(spec)
         finished = [(c.estimator, c.task, c.seed) for c in cached]
@@ -359,14 +363,15 @@ def _scoring_seconds(cell, task) -> float:
     return per_step * 1e-6 * cell.n_test * samples
 
 
-def _timed_job(spec: RunSpec, job: Job, key: str) -> tuple[JobOutcome, dict[str, float]]:
+def _timed_job(spec: RunSpec, job: Job, key: str) -> tuple[JobOutcome, dict[str, float], str]:
     """:func:`~kkl_bench.run.harness.run_job` on one thread, metered under ``key`` in the
     target folder, with the times it took (:func:`~kkl_bench.run.ledger.metered`:
     ``seconds``, the processor time, the core-seconds it used whatever else shares the
-    machine, waits for another job's model or pauses; ``wall_seconds``)."""
+    machine, waits for another job's model or pauses; ``wall_seconds``) and the device its
+    torch estimators trained on, as the worker resolved it."""
     with metered(spec.results_dir, key) as spent:
         outcome = harness.run_job(spec, job)  # on one thread (kkl_bench.support.executors)
-        return outcome, spent()
+        return outcome, spent(), resolve_device(spec.device)
 
 
 def run(
@@ -383,7 +388,7 @@ def run(
     ``progress(planned_job, outcome)`` after each. Returns the ledger."""
     by_job = {planned_job.job: planned_job for planned_job in planned.jobs}
     arguments = [(p.spec, p.job, p.key) for p in planned.jobs]
-    for outcome, times in execute(_timed_job, arguments, jobs, executor, scheduler):
+    for outcome, times, device in execute(_timed_job, arguments, jobs, executor, scheduler):
         planned_job = by_job[outcome.job]
         failed = sum(cell.status == "error" for cell in outcome.scored)
         earlier = interrupted_times(into, planned_job.key)
@@ -394,6 +399,7 @@ def run(
             planned_job.estimate_s,
             len(outcome.scored),
             failed,
+            device,
         )
         if progress is not None:
             progress(planned_job, outcome)
