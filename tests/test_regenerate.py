@@ -185,6 +185,16 @@ def test_regenerate_on_cuda_without_a_gpu_is_an_error_before_any_work(published,
     assert not (tmp_path / "into").exists()
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_regeneration_on_the_gpu_says_so_in_its_ledger(published, tmp_path):
+    into = tmp_path / "into"
+    argv = ["regenerate", "--from", str(published), "--into", str(into), "--profile", "quick"]
+    assert main([*argv, "--estimator", "ekf", "--device", "cuda"]) == 0
+    written = ledger.read_ledger(into)
+    assert {record["device"] for record in written["jobs"].values()} == {"cuda"}
+    assert ledger.ledger_summary(written)["gpu_jobs"] == 1
+
+
 METER_CHILD = """
 import sys, time
 from kkl_bench.run.ledger import metered

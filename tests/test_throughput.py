@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from kkl_bench.analysis import throughput
+from kkl_bench.analysis.cost import peak_gflops
 from kkl_bench.cli import main
 from kkl_bench.kkl.optimize import minimize, probing
 from kkl_bench.suite.task import get_profile
@@ -136,6 +137,16 @@ def test_throughput_on_cuda_without_a_gpu_is_an_error_before_any_work(tmp_path, 
     assert main([*args, "--device", "cuda", "--out", str(tmp_path)]) == 2
     assert "torch sees no CUDA GPU" in capsys.readouterr().err
     assert not (tmp_path / throughput.THROUGHPUT_FILE).exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_throughput_on_the_gpu_is_recorded_beside_the_gpu_s_peak(tmp_path, monkeypatch):
+    monkeypatch.setenv("KKL_BENCH_CACHE", str(tmp_path / "cache"))
+    args = ["throughput", "--estimator", "gru_observer", "--system", "vdp", "--profile", "quick"]
+    assert main([*args, "--steps", "2", "--device", "cuda", "--out", str(tmp_path)]) == 0
+    stored = throughput.read_throughput(tmp_path / throughput.THROUGHPUT_FILE)
+    assert set(stored["device"]) == {"cuda"}
+    assert (stored["peak_gflops"] > peak_gflops("float32", threads=1)).all()
 
 
 def test_render_only_without_a_measurement_says_what_to_run(tmp_path, capsys):
