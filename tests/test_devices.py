@@ -14,6 +14,8 @@ import torch
 from torch import nn
 
 from kkl_bench.cli import main
+from kkl_bench.cli.run import announce
+from kkl_bench.run.spec import RunSpec
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support import devices
 from kkl_bench.support.devices import draw_integers, draw_normal, resolve, to_numpy, training_on
@@ -121,3 +123,14 @@ def test_a_gpu_fit_sees_the_cpu_fits_samples_and_estimates_on_the_cpu(estimator)
     assert gpu_curve[0][1] == pytest.approx(cpu_curve[0][1], rel=1e-5)
     # the model came back to the CPU: it estimates from CPU arrays
     assert np.isfinite(check.estimate(fits["cuda"])).all()
+
+
+def test_a_run_says_where_torch_estimators_train_unless_on_the_cpu(tmp_path, capsys):
+    spec = RunSpec(("ekf",), ("duffing",), None, get_profile("quick"), results_dir=tmp_path)
+    said = {}
+    for device in ("cpu", "cuda", None):
+        announce(spec, [], 0, True, device)
+        said[device] = capsys.readouterr().err
+    assert "torch estimators train" not in said["cpu"]
+    assert "(0 already done); torch estimators train on cuda; nothing to do" in said["cuda"]
+    assert "torch estimators train on each worker's device (auto)" in said[None]

@@ -136,8 +136,11 @@ def run_command(args: argparse.Namespace) -> int:
         own_rows_only=args.own_rows_only,
     )
     args.profile_given = args.profile is not None
-    if args.scheduler is None:  # local workers: a missing GPU is an error before any work
-        resolve_device(args.device)
+    # local workers: a missing GPU is an error before any work; a cluster's resolve `auto`
+    if args.scheduler is None:
+        device = resolve_device(args.device)
+    else:
+        device = None if args.device == "auto" else args.device
     commit = provenance()["git_commit"]
     if commit is not None and commit.endswith("-dirty"):
         print(
@@ -146,7 +149,7 @@ def run_command(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     todo, done = harness.plan(spec)
-    weights = announce(spec, todo, len(done), args.profile_given)
+    weights = announce(spec, todo, len(done), args.profile_given, device)
     per_cell = {  # a fit's estimated seconds, shared out over the cells it scores
         (job.estimator, task.id, job.seed): weight / len(job.tasks)
         for job, weight in zip(todo, weights, strict=True)
@@ -237,10 +240,14 @@ def advance(bar: tqdm, seconds: float) -> None:
     bar.update(min(seconds, bar.total - bar.n))
 
 
-def announce(spec: harness.RunSpec, todo, done: int, profile_given: bool) -> list[float]:
-    """Print the run's plan (profile, fits, cells) and its estimated duration, before any
-    work; returns each fit's estimated seconds (the median of the others, or 1, where
-    none is recorded: the bar still advances by fits)."""
+def announce(
+    spec: harness.RunSpec, todo, done: int, profile_given: bool, device: str | None = "cpu"
+) -> list[float]:
+    """Print the run's plan (profile, fits, cells, and ``device`` where torch estimators
+    train, if not the CPU; None: each Dask worker's ``auto``) and its estimated duration,
+    before any work; returns each fit's
+    estimated seconds (the median of the others, or 1, where none is recorded: the bar
+    still advances by fits)."""
     cells = sum(len(job.tasks) for job in todo)
     rows = ", ".join(dict.fromkeys(job.estimator for job in todo)) or "nothing"
     profile = spec.profile.name + ("" if profile_given else " (the default; --profile to choose)")
@@ -259,9 +266,12 @@ def announce(spec: harness.RunSpec, todo, done: int, profile_given: bool) -> lis
             f"no estimate for {', '.join(unknown[:4])}{' ...' if len(unknown) > 4 else ''} "
             "(none recorded): the time left shows after the first"
         )
+    where = {"cpu": "", None: "; torch estimators train on each worker's device (auto)"}.get(
+        device, f"; torch estimators train on {device}"
+    )
     print(
         f"kkl-bench run: profile {profile}; {len(todo)} fits of {rows} making {cells} cells "
-        f"({done} already done); {duration}",
+        f"({done} already done){where}; {duration}",
         file=sys.stderr,
     )
     fallback = statistics.median(recorded) if recorded else 1.0
