@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.measurement import MeasurementModel, NoiseLaw
@@ -17,6 +18,7 @@ from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
 from kkl_bench.run.harness import RunSpec, run
 from kkl_bench.suite.task import get_profile
+from kkl_bench.testing import Conformance
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -88,6 +90,23 @@ def test_the_plugin_package_of_the_readme_installs_checks_and_runs(tmp_path):
             assert " 0 failed" in done.stdout, done.stdout
         else:
             assert " 0 failed; results in results/quick/" in done.stdout, done.stdout
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_the_readme_s_learned_plugin_trains_on_a_gpu_as_on_the_cpu():
+    namespace = {"__name__": "window_mlp"}
+    plugin = readme_block("readme-plugin-file:my_plugins/window_mlp.py")
+    exec(compile(plugin, "README.md", "exec"), namespace)
+    check = Conformance(namespace["WindowMLP"]())
+    logs = {  # each from an empty cache: a cached model would not train again
+        device: check.prototype.clone()
+        .fit(dataclasses.replace(check.context, device=device, cache_dir=check.fresh_cache()))
+        .fit_report()["training_log"]
+        for device in ("cpu", "cuda")
+    }
+    assert logs["cuda"]["spent"]["device"] == "cuda"
+    first = [log["validation_curve"][0][1] for log in logs.values()]
+    assert first[1] == pytest.approx(first[0], rel=1e-5)  # the same weights and data
 
 
 def test_ci_runs_the_readme_test_command():
