@@ -105,7 +105,9 @@ def _validation_curves(report, path=""):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
-@pytest.mark.parametrize("estimator", ["dynamic_hyperkkl", "gru_observer", "kalmannet"])
+@pytest.mark.parametrize(
+    "estimator", ["dynamic_hyperkkl", "gru_observer", "kalmannet", "ring_observer"]
+)
 def test_a_gpu_fit_sees_the_cpu_fits_samples_and_estimates_on_the_cpu(estimator):
     check = Conformance(estimator)
     fits = {  # each from an empty cache: a cached model would not train again
