@@ -304,7 +304,7 @@ def test_the_board_says_how_many_of_its_cells_the_regeneration_wrote(published, 
     del next(reversed(written["jobs"].values()))["device"]  # a ledger from before: the CPU
     on_gpu = ledger.ledger_summary(written)
     assert on_gpu["gpu_jobs"] == 1
-    assert "one thread a job; 1 of the jobs trained on a GPU, whose time this counts only " in (
+    assert "one thread a job; 1 of the jobs ran with `--device cuda`, whose GPU time this " in (
         regeneration_sentence(on_gpu, 5)
     )
     part = regeneration_sentence(summary, 12)

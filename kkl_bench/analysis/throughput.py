@@ -77,10 +77,10 @@ def probe_fit(
     estimator: str, system: str, profile: Profile, steps: int, seed: int = 0, device: str = "cpu"
 ) -> list[dict] | None:
     """One record per training of ``estimator``'s fit for ``system`` at ``profile``'s sizes
-    (from an empty cache, trained on ``device``): the :class:`~kkl_bench.kkl.optimize.Probe` records of the
-    trainings of one description summed (a curriculum's stages), ``flops_per_step`` and
-    ``samples_per_step`` their means over the timed steps. None if the estimator does not
-    support the system."""
+    (from an empty cache, trained on ``device``): the
+    :class:`~kkl_bench.kkl.optimize.Probe` records of the trainings of one description
+    summed (a curriculum's stages), ``flops_per_step`` and ``samples_per_step`` their means
+    over the timed steps. None if the estimator does not support the system."""
     with tempfile.TemporaryDirectory() as cache, probing(steps) as probe:
         spec = RunSpec((estimator,), (system,), None, profile, cache_dir=Path(cache), device=device)
         context = make_fit_context(spec, estimator, system, seed)

@@ -115,9 +115,8 @@ def add_parser(commands) -> None:
         "temporary cache (nothing is kept), with every training measured instead of run "
         "to the end: one optimizer step's matrix products counted, then --steps steps "
         "timed, on --threads threads (or the GPU: --device), beside that device's float32 "
-        "peak. Merges one row "
-        "per training into DIR/training-throughput.csv and prints the table protocol 6.5 "
-        "shows.",
+        "peak. Merges one row per training into DIR/training-throughput.csv and prints the "
+        "table protocol 6.5 shows.",
     )
     throughput.add_argument(
         "--estimator",

@@ -245,9 +245,8 @@ def announce(
 ) -> list[float]:
     """Print the run's plan (profile, fits, cells, and ``device`` where torch estimators
     train, if not the CPU; None: each Dask worker's ``auto``) and its estimated duration,
-    before any work; returns each fit's
-    estimated seconds (the median of the others, or 1, where none is recorded: the bar
-    still advances by fits)."""
+    before any work; returns each fit's estimated seconds (the median of the others, or 1,
+    where none is recorded: the bar still advances by fits)."""
     cells = sum(len(job.tasks) for job in todo)
     rows = ", ".join(dict.fromkeys(job.estimator for job in todo)) or "nothing"
     profile = spec.profile.name + ("" if profile_given else " (the default; --profile to choose)")

@@ -232,8 +232,8 @@ def regeneration_sentence(summary: dict | None, cells: int) -> str:
         else f"{summary['cells']} of the {cells} cells (the others' runs are listed below)"
     )
     on_gpu = (
-        f"; {summary['gpu_jobs']} of the jobs trained on a GPU, whose time this counts only "
-        "on the CPU"
+        f"; {summary['gpu_jobs']} of the jobs ran with `--device cuda`, whose GPU time this "
+        "does not count"
         if summary.get("gpu_jobs")
         else ""
     )

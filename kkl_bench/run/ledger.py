@@ -38,9 +38,9 @@ METER_EVERY_S = 30.0
 def read_ledger(folder: Path) -> dict[str, Any]:
     """The ledger of the regenerations that wrote into ``folder`` (empty if none):
     ``jobs``: key -> ``{seconds, wall_seconds, estimate_s, cells, failed, device,
-    git_commit, finished_at}`` (``seconds``: processor time; ``device``: where its torch
-    estimators trained, ``cpu`` or ``cuda``, absent in ledgers from before it was
-    recorded, whose jobs trained on the CPU)."""
+    git_commit, finished_at}`` (``seconds``: processor time; ``device``: the device its
+    torch estimators were given, ``cpu`` or ``cuda``, absent in ledgers from before it was
+    recorded, whose jobs ran on the CPU)."""
     path = Path(folder) / LEDGER_FILE
     if not path.exists():
         return {"jobs": {}}
@@ -57,8 +57,8 @@ def record_job(
     device: str = "cpu",
 ) -> None:
     """Add one finished job (its ``key``, ``times``: ``seconds`` of processor time and
-    ``wall_seconds``, its estimate, the cells it made and those that failed, the device it
-    trained on) to the ledger in ``into``, written atomically; a job run again adds its
+    ``wall_seconds``, its estimate, the cells it made and those that failed, the device its
+    torch estimators were given) to the ledger in ``into``, written atomically; a job run again adds its
     times to those before."""
     ledger = read_ledger(into)
     previous = ledger["jobs"].get(key, {})
@@ -187,7 +187,7 @@ def _killed_meters(folder: Path, key: str) -> Iterator[tuple[Path, dict[str, flo
 
 def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
     """What the board says of a regeneration: jobs, cells, core-hours measured, the jobs
-    that trained on a GPU, the commits that ran them, first and last finish; None without
+    that ran with a GPU, the commits that ran them, first and last finish; None without
     one."""
     jobs = ledger.get("jobs", {})
     if not jobs:

@@ -368,7 +368,7 @@ def _timed_job(spec: RunSpec, job: Job, key: str) -> tuple[JobOutcome, dict[str,
     target folder, with the times it took (:func:`~kkl_bench.run.ledger.metered`:
     ``seconds``, the processor time, the core-seconds it used whatever else shares the
     machine, waits for another job's model or pauses; ``wall_seconds``) and the device its
-    torch estimators trained on, as the worker resolved it."""
+    torch estimators were given, as the worker resolved it."""
     with metered(spec.results_dir, key) as spent:
         outcome = harness.run_job(spec, job)  # on one thread (kkl_bench.support.executors)
         return outcome, spent(), resolve_device(spec.device)
