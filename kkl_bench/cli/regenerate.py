@@ -24,11 +24,12 @@ def add_parser(commands) -> None:
     parser = commands.add_parser(
         "regenerate",
         help="compute every cell of a results folder again (resumable), into another folder",
-        description="Plan the fits that make every cell of --from (one profile; narrowed by "
-        "--estimator, --track, --system), print the plan and its estimated core-hours, then "
-        "compute the cells into --into, each row as `kkl-bench run` of that row makes it. "
-        "Rerun the same command to resume: finished cells are skipped and a killed training "
-        f"continues from its checkpoint. Each fit's processor time goes to --into/"
+        description="Plan the jobs that make every cell of --from (one profile; narrowed by "
+        "--estimator, --track, --system): fits, and jobs that only score trained models. "
+        "Print the plan and its estimated core-hours, then compute the cells into --into, "
+        "each row as `kkl-bench run` of that row makes it. Rerun the same command to resume: "
+        "finished cells are skipped and a killed training continues from its checkpoint. "
+        f"Each job's processor time goes to --into/"
         f"{ledger.LEDGER_FILE}; `kkl-bench publish --results INTO` states the core-hours.",
     )
     parser.add_argument(
@@ -50,7 +51,7 @@ def add_parser(commands) -> None:
         "--dry-run", action="store_true", help="print the plan and its estimate, run nothing"
     )
     add_cache_argument(parser)
-    add_jobs_argument(parser, "fits")
+    add_jobs_argument(parser, "jobs (fits, or scoring only)")
     parser.add_argument(
         "--device",
         choices=DEVICES,
