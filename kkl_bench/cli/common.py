@@ -13,6 +13,16 @@ from kkl_bench import variants
 from kkl_bench.analysis import summary
 from kkl_bench.registry import estimators
 from kkl_bench.run.results import DamagedCellError, load_results
+from kkl_bench.support.devices import resolve as resolve_device
+
+
+def device_before_work(args: argparse.Namespace) -> str | None:
+    """Where ``--device`` has torch estimators train: resolved now for local workers (``cpu``
+    or ``cuda``; a missing GPU is an error before any work), or, with a Dask scheduler,
+    ``args.device`` unless it is ``auto``, which each worker resolves (None)."""
+    if args.scheduler is None:
+        return resolve_device(args.device)
+    return None if args.device == "auto" else args.device
 
 
 def names(registry, requested: Sequence[str] | None) -> tuple[str, ...]:

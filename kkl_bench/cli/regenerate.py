@@ -8,14 +8,13 @@ import sys
 import time
 from pathlib import Path
 
-from kkl_bench.cli.common import add_cache_argument, add_jobs_argument
+from kkl_bench.cli.common import add_cache_argument, add_jobs_argument, device_before_work
 from kkl_bench.cli.run import RESUME, following, showing_jobs, work_bar
 from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support.cache import default_cache_dir
 from kkl_bench.support.devices import DEVICES
-from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import EXECUTORS
 from kkl_bench.support.provenance import provenance
 
@@ -76,8 +75,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
             "publish from it"
         )
     profile = get_profile(args.profile)
-    if args.scheduler is None:  # local workers: a missing GPU is an error before any work
-        resolve_device(args.device)
+    device_before_work(args)
     source = regenerate.select(load_results(args.source), args.estimator, args.track, args.system)
     if source.empty:
         raise ValueError(f"{args.source} holds no cells of the selection")

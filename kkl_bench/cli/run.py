@@ -18,6 +18,7 @@ from kkl_bench.cli.common import (
     add_cache_argument,
     add_jobs_argument,
     add_results_argument,
+    device_before_work,
     names,
     positive_integer,
     seed,
@@ -30,7 +31,6 @@ from kkl_bench.suite.tracks import load_tracks
 from kkl_bench.support import status
 from kkl_bench.support.cache import default_cache_dir
 from kkl_bench.support.devices import DEVICES
-from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import EXECUTORS
 from kkl_bench.support.provenance import provenance
 
@@ -136,11 +136,7 @@ def run_command(args: argparse.Namespace) -> int:
         own_rows_only=args.own_rows_only,
     )
     args.profile_given = args.profile is not None
-    # local workers: a missing GPU is an error before any work; a cluster's resolve `auto`
-    if args.scheduler is None:
-        device = resolve_device(args.device)
-    else:
-        device = None if args.device == "auto" else args.device
+    device = device_before_work(args)
     commit = provenance()["git_commit"]
     if commit is not None and commit.endswith("-dirty"):
         print(
