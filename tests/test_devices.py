@@ -94,6 +94,17 @@ def test_the_cli_refuses_cuda_without_a_gpu_before_any_work(tmp_path, capsys):
     assert not (tmp_path / "r").exists()
 
 
+def fits_on_cpu_and_gpu(check: Conformance) -> dict:
+    """``check``'s estimator fitted on ``cpu`` and on ``cuda``, by device, each from an empty
+    cache (a cached model would not train again)."""
+    return {
+        device: check.prototype.clone().fit(
+            dataclasses.replace(check.context, device=device, cache_dir=check.fresh_cache())
+        )
+        for device in ("cpu", "cuda")
+    }
+
+
 def _validation_curves(report, path=""):
     """``(path, curve)`` for every ``validation_curve`` in a fit report, in order."""
     if isinstance(report, dict):
@@ -110,12 +121,7 @@ def _validation_curves(report, path=""):
 )
 def test_a_gpu_fit_sees_the_cpu_fits_samples_and_estimates_on_the_cpu(estimator):
     check = Conformance(estimator)
-    fits = {  # each from an empty cache: a cached model would not train again
-        device: check.prototype.clone().fit(
-            dataclasses.replace(check.context, device=device, cache_dir=check.fresh_cache())
-        )
-        for device in ("cpu", "cuda")
-    }
+    fits = fits_on_cpu_and_gpu(check)
     reports = {device: fit.fit_report() for device, fit in fits.items()}
     assert {spent["device"] for spent in reports["cuda"]["spent"].values()} == {"cuda"}
     # the same initial weights and validation trajectories: the first training's error

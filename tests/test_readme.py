@@ -19,6 +19,7 @@ from kkl_bench.registry import estimators
 from kkl_bench.run.harness import RunSpec, run
 from kkl_bench.suite.task import get_profile
 from kkl_bench.testing import Conformance
+from tests.test_devices import fits_on_cpu_and_gpu
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -97,13 +98,8 @@ def test_the_readme_s_learned_plugin_trains_on_a_gpu_as_on_the_cpu():
     namespace = {"__name__": "window_mlp"}
     plugin = readme_block("readme-plugin-file:my_plugins/window_mlp.py")
     exec(compile(plugin, "README.md", "exec"), namespace)
-    check = Conformance(namespace["WindowMLP"]())
-    logs = {  # each from an empty cache: a cached model would not train again
-        device: check.prototype.clone()
-        .fit(dataclasses.replace(check.context, device=device, cache_dir=check.fresh_cache()))
-        .fit_report()["training_log"]
-        for device in ("cpu", "cuda")
-    }
+    fits = fits_on_cpu_and_gpu(Conformance(namespace["WindowMLP"]()))
+    logs = {device: fit.fit_report()["training_log"] for device, fit in fits.items()}
     assert logs["cuda"]["spent"]["device"] == "cuda"
     first = [log["validation_curve"][0][1] for log in logs.values()]
     assert first[1] == pytest.approx(first[0], rel=1e-5)  # the same weights and data
