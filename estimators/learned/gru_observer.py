@@ -11,17 +11,18 @@ half forced by :data:`~kkl_bench.training.FORCED_TRAINING` (the KKL plugins'
 training families). Training is truncated backpropagation through time in
 sweeps: ``rnn_batch`` trajectories are walked from ``t = 0`` in consecutive
 windows of ``rnn_window`` samples, one Adam step per window, the hidden state
-carried from window to window as it is at test time. The model is cached and
-its training checkpointed like the KKL models
-(:func:`kkl_bench.kkl.phase2.load_or_train`,
+carried from window to window as it is at test time, until the plateau rule
+(protocol 6.5) stops it or ``rnn_steps`` is reached; the state with the lowest
+validation error is kept. The model is cached and its training checkpointed
+like the KKL models (:func:`kkl_bench.kkl.phase2.load_or_train`,
 :func:`kkl_bench.kkl.optimize.resumable`); the fit report records the steps,
 samples and the RMSE on validation trajectories of a separate training
 stream.
 
 With logged data of a true plant (the ``mismatch`` track), the nominally
-trained network is fine-tuned on four fifths of the logged trajectories
-(``rnn_logged_steps`` Adam steps, the same sweeps) and kept only if its RMSE
-on the held-out fifth improves; the fit report records both RMSEs.
+trained network is fine-tuned on four fifths of the logged trajectories (the
+same sweeps and rule, at most ``rnn_logged_steps`` Adam steps) and kept only
+if its RMSE on the held-out fifth improves; the fit report records both RMSEs.
 """
 
 from __future__ import annotations
