@@ -226,9 +226,9 @@ def test_a_killed_job_s_meter_counts_once_and_a_live_one_is_left(tmp_path):
         killed = _metered_child(tmp_path, key)
         killed.kill()
         killed.wait()
-        banked = ledger.banked_seconds(tmp_path, key)  # read, left in place
+        (banked,) = ledger.killed_attempts(tmp_path, key)  # read, left in place
         spent = ledger.interrupted_times(tmp_path, key)
-        assert 0.3 <= spent["seconds"] < 1.0 and spent["seconds"] == banked
+        assert 0.3 <= spent["seconds"] < 1.0 and spent == banked
         assert spent["wall_seconds"] >= spent["seconds"] + 0.05  # its sleep, metered
         assert ledger.interrupted_times(tmp_path, key)["seconds"] == 0.0  # counted once
         assert len(list(tmp_path.glob(f"{ledger.METER_FOLDER}/*/*.json"))) == 1  # the live one
@@ -287,6 +287,36 @@ def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, t
     other = planned.jobs[1].key
     assert jobs[other]["seconds"] < 100
     assert [path.name for path in meters.parent.iterdir()] == [".gitignore"]  # none left
+
+
+def test_a_job_resumed_after_its_killed_attempt_wrote_a_cell_counts_that_cell_and_its_time(
+    published, tmp_path
+):
+    into = tmp_path / "into"
+    planned = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
+    whole = planned.jobs[0]  # the EKF's fit, on three cells
+    # what an attempt killed while it scored left: its first cell, and its meter
+    ekf = whole.job
+    harness.run_job(whole.spec, Job(ekf.estimator, ekf.system, ekf.tasks[:1], ekf.seed))
+    meters = ledger._meter_folder(into, whole.key)
+    meters.mkdir(parents=True)
+    (meters / "elsewhere-1-1.json").write_text('{"seconds": 1000.0, "wall_seconds": 2000.0}')
+    resumed = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
+    first = resumed.jobs[0]
+    assert first.job.tasks == ekf.tasks[1:] and first.key == whole.key  # the attempt's key
+    assert first.banked_s == 1000.0 and first.earlier_cells == 1
+    jobs = regenerate.run(resumed, into)["jobs"]
+    assert jobs[whole.key]["cells"] == 3 and 1000 < jobs[whole.key]["seconds"] < 1100
+    assert ledger.ledger_summary(ledger.read_ledger(into))["cells"] == 5
+
+
+def test_a_job_run_again_for_its_failed_cell_counts_each_cell_once(tmp_path):
+    key = "ekf duffing seed0 [duffing/zero@v1,duffing/square@v1]"
+    ledger.record_job(tmp_path, key, {"seconds": 2.0, "wall_seconds": 3.0}, 5.0, 2, failed=1)
+    ledger.record_job(tmp_path, key, {"seconds": 1.0, "wall_seconds": 1.0}, 5.0, 1, failed=0)
+    (record,) = ledger.read_ledger(tmp_path)["jobs"].values()
+    assert record["cells"] == 2 and record["failed"] == 0
+    assert record["seconds"] == 3.0 and record["wall_seconds"] == 4.0
 
 
 def test_the_board_says_how_many_of_its_cells_the_regeneration_wrote(published, tmp_path):

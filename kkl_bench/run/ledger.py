@@ -58,14 +58,15 @@ def record_job(
 ) -> None:
     """Add one finished job (its ``key``, ``times``: ``seconds`` of processor time and
     ``wall_seconds``, its estimate, the cells it made and those that failed, the device its
-    torch estimators were given) to the ledger in ``into``, written atomically; a job run again adds its
-    times to those before."""
+    torch estimators were given) to the ledger in ``into``, written atomically. A job run
+    again (its failed cells retried) adds its times to those before, and the cells it made
+    to those it had made without failing."""
     ledger = read_ledger(into)
     previous = ledger["jobs"].get(key, {})
     ledger["jobs"][key] = {
         **{name: previous.get(name, 0.0) + value for name, value in times.items()},
         "estimate_s": estimate_s,
-        "cells": cells,
+        "cells": previous.get("cells", 0) - previous.get("failed", 0) + cells,
         "failed": failed,
         "device": device,
         "git_commit": provenance()["git_commit"],
@@ -150,10 +151,10 @@ def interrupted_times(folder: Path, key: str) -> dict[str, float]:
     return total
 
 
-def banked_seconds(folder: Path, key: str) -> float:
-    """Processor seconds that killed attempts of the job ``key`` spent (their meters, left
-    in place): the work a resumed job does not do again."""
-    return sum(float(spent.get("seconds", 0.0)) for _, spent in _killed_meters(folder, key))
+def killed_attempts(folder: Path, key: str) -> list[dict[str, float]]:
+    """What each killed attempt of the job ``key`` spent (``{"seconds", "wall_seconds"}``,
+    read from its meter, left in place): the work a resumed job does not do again."""
+    return [spent for _, spent in _killed_meters(folder, key)]
 
 
 def running_seconds(folder: Path, key: str, since_ns: int) -> float:

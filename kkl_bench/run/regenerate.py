@@ -39,15 +39,15 @@ from kkl_bench.protocol import DT
 from kkl_bench.run import harness
 from kkl_bench.run.harness import Job, JobOutcome, RunSpec
 from kkl_bench.run.ledger import (
-    banked_seconds,
     interrupted_times,
+    killed_attempts,
     metered,
     read_ledger,
     record_job,
     running_seconds,
 )
 from kkl_bench.run.results import recorded_seconds
-from kkl_bench.suite.task import Profile
+from kkl_bench.suite.task import Profile, Task
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import execute
@@ -59,7 +59,7 @@ class PlannedJob:
     wall time (s, one thread, from the source cells' records) split into ``fit_s``, the
     training of the models it is the first to need, and ``scoring_s``, the scoring of its
     cells; the processor seconds its killed attempts already spent
-    (:func:`~kkl_bench.run.ledger.banked_seconds`); and ``rate``, how many times their
+    (:func:`~kkl_bench.run.ledger.killed_attempts`); and ``rate``, how many times their
     estimates the finished jobs of its row took in this regeneration
     (:func:`measured_rates`; 1 before any of its row finished)."""
 
@@ -69,6 +69,12 @@ class PlannedJob:
     scoring_s: float
     banked_s: float = 0.0
     rate: float = 1.0
+    fit: tuple[Task, ...] = ()
+    """The tasks of the job's fit, those already done included (empty: the job's own):
+    what its ledger key names, so that a job resumed after a killed attempt wrote some of
+    its cells keeps that attempt's key, and with it its meter."""
+    earlier_cells: int = 0
+    """The cells of its fit that its killed attempts wrote."""
 
     @property
     def estimate_s(self) -> float:
@@ -97,11 +103,13 @@ class PlannedJob:
 
     @property
     def key(self) -> str:
-        return job_key(self.job)
+        job = self.job
+        return job_key(Job(job.estimator, job.system, self.fit or job.tasks, job.seed))
 
 
 def job_key(job: Job) -> str:
-    """A job's name in the ledger: row, system, seed and its tasks' ids."""
+    """A job's name in the ledger: row, system, seed and its tasks' ids (those of its whole
+    fit: :attr:`PlannedJob.fit`)."""
     tasks = ",".join(task.id for task in job.tasks)
     return f"{job.estimator} {job.system} seed{job.seed} [{tasks}]"
 
@@ -281,17 +289,43 @@ def plan(
         done += sum(key in wanted for key in finished)
         known.made(key for key in finished if key in wanted)
         planned.append((spec, todo))
-    rates = measured_rates(read_ledger(into))
+    recorded = read_ledger(into)
+    rates = measured_rates(recorded)
     jobs = []
     for spec, todo in planned:
         for job in todo:
             tasks = tuple(t for t in job.tasks if (job.estimator, t.id, job.seed) in wanted)
-            if tasks:
-                job = Job(job.estimator, job.system, tasks, job.seed)
-                banked = banked_seconds(into, job_key(job))
-                rate = 1.0 if rates is None else rates.rate(job.estimator)
-                jobs.append(PlannedJob(spec, job, *known.seconds(job), banked, rate))
+            if not tasks:
+                continue
+            fit = tuple(t for t in _fit_of(spec, job) if (job.estimator, t.id, job.seed) in wanted)
+            job = Job(job.estimator, job.system, tasks, job.seed)
+            key = job_key(Job(job.estimator, job.system, fit, job.seed))
+            attempts = killed_attempts(into, key)
+            jobs.append(
+                PlannedJob(
+                    spec,
+                    job,
+                    *known.seconds(job),
+                    banked_s=sum(float(spent.get("seconds", 0.0)) for spent in attempts),
+                    rate=1.0 if rates is None else rates.rate(job.estimator),
+                    fit=fit,
+                    # the fit's cells already made, where only its killed attempts wrote
+                    earlier_cells=len(fit) - len(tasks)
+                    if attempts and key not in recorded["jobs"]
+                    else 0,
+                )
+            )
     return Plan(jobs, len(wanted), done, rates)
+
+
+def _fit_of(spec: RunSpec, job: Job) -> list[Task]:
+    """The tasks of the fit ``job`` (of ``spec``'s row, possibly with some of its tasks
+    already done) is part of: :func:`~kkl_bench.run.harness.rows_and_tasks`' group."""
+    first = job.tasks[0].id
+    for row, tasks in harness.rows_and_tasks(spec, spec.estimators[0], job.system):
+        if row == job.estimator and any(task.id == first for task in tasks):
+            return tasks
+    raise ValueError(f"{job_key(job)}: no fit of {spec.estimators[0]} on {job.system} has it")
 
 
 class _CostRecords:
@@ -397,7 +431,7 @@ def run(
             planned_job.key,
             {name: seconds + earlier[name] for name, seconds in times.items()},
             planned_job.estimate_s,
-            len(outcome.scored),
+            len(outcome.scored) + planned_job.earlier_cells,
             failed,
             device,
         )
