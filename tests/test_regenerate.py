@@ -237,6 +237,30 @@ def test_a_killed_job_s_meter_counts_once_and_a_live_one_is_left(tmp_path):
         live.wait()
 
 
+def test_a_killed_attempt_s_meter_is_committed_with_the_results_and_counted_in_a_clone(tmp_path):
+    """A new machine gets the results folder from git: the killed attempt's meter goes with
+    it (only the locks are ignored), and the job resumed there counts its time."""
+    key = "gru_observer vdp seed2 [vdp/zero@v1]"
+    results = tmp_path / "board" / "results"
+    killed = _metered_child(results, key)
+    killed.kill()
+    killed.wait()
+    (banked,) = ledger.killed_attempts(results, key)
+
+    def git(*arguments, cwd):
+        done = subprocess.run(["git", *arguments], cwd=cwd, capture_output=True, text=True)
+        assert done.returncode == 0, done.stdout + done.stderr
+
+    identity = ("-c", "user.name=t", "-c", "user.email=t@t")
+    git("init", "-q", cwd=tmp_path / "board")
+    git("add", ".", cwd=tmp_path / "board")
+    git(*identity, "commit", "-qm", "the refit so far", cwd=tmp_path / "board")
+    git("clone", "-q", str(tmp_path / "board"), str(tmp_path / "clone"), cwd=tmp_path)
+    cloned = tmp_path / "clone" / "results"
+    assert not list(cloned.glob(f"{ledger.METER_FOLDER}/*/*.lock"))
+    assert ledger.interrupted_times(cloned, key) == banked
+
+
 def test_the_work_done_counts_running_jobs_processor_time_up_to_their_expected_work(tmp_path):
     def planned(seed, fit_s, banked_s=0.0):
         job = Job("kalmannet", "duffing", (Task("duffing", "zero"),), seed)

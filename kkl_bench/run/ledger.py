@@ -9,7 +9,9 @@ running job keeps a *meter*, a file of its own under ``<folder>/.meters/`` that 
 rewrites every :data:`METER_EVERY_S` seconds with the processor and wall seconds spent
 so far, locked while its job lives. When a job finishes, the meters of its earlier,
 killed attempts (unlocked ones) are added to its times and removed, so at most one
-meter period per kill goes uncounted.
+meter period per kill goes uncounted. The meters travel with the results folder (only
+their locks are ignored by git), so a job resumed on a new machine from a committed or
+copied folder counts its killed attempts there too.
 """
 
 from __future__ import annotations
@@ -106,7 +108,7 @@ def metered(
     attempt = f"{socket.gethostname()}-{os.getpid()}-{time.time_ns()}"
     path = _meter_folder(folder, key) / f"{attempt}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    (Path(folder) / METER_FOLDER / ".gitignore").write_text("*\n")
+    (Path(folder) / METER_FOLDER / ".gitignore").write_text("*.lock\n")
     lock = FileLock(path.with_suffix(".lock"))
     stopped = threading.Event()
 
