@@ -169,6 +169,17 @@ def test_an_interrupted_regeneration_resumes_and_makes_each_cell_once(
     assert summary["jobs"] == 2 and summary["cells"] == 5 and summary["core_hours"] > 0
 
 
+def test_a_cell_decided_unsupported_is_kept_and_not_planned_again(tmp_path):
+    source, into = tmp_path / "source", tmp_path / "into"
+    argv = ["run", "--estimator", "ring_observer", "--system", "duffing", "--regime", "zero"]
+    assert main([*argv, "--results", str(source)]) == 0
+    regeneration = ["regenerate", "--from", str(source), "--into", str(into), "--profile", "quick"]
+    assert main(regeneration) == 0
+    assert list(load_results(into)["status"]) == ["unsupported"]
+    planned = regenerate.plan(load_results(source), PROFILE, into, tmp_path / "cache")
+    assert planned.jobs == [] and planned.done == planned.cells == 1
+
+
 def test_regenerate_refuses_its_source_as_target_and_unknown_names(published, capsys):
     base = ["regenerate", "--from", str(published), "--profile", "quick"]
     assert main([*base, "--into", str(published)]) == 2
