@@ -328,8 +328,8 @@ def plan(
 def _decided_unsupported(spec: RunSpec, jobs: list[Job]) -> set[tuple[str, str, int]]:
     """``(row, task id, seed)`` of the cells of ``jobs`` that the target folder holds as
     ``unsupported``. The harness decides such a cell anew at every run (no fit: a plugin
-    that gains support gets its cells); a regeneration, whose code does not change
-    between its invocations, keeps them like its finished cells, so that what it has left
+    that gains support gets its cells); a regeneration, meant to run one commit's code
+    across its invocations, keeps them like its finished cells, so that what it has left
     to do comes to nothing."""
     decided = set()
     for job in jobs:
