@@ -217,7 +217,8 @@ def _done(spec: RunSpec, estimator: str, task: Task, seed: int) -> CellResult | 
         aside = move_aside(path)
         warnings.warn(f"{error}; moved to {aside.name}, recomputing the cell", stacklevel=2)
         return None
-    if cell.status != "ok":  # errors are retried; unsupported cells are decided anew (no fit)
+    # errors are retried; unsupported cells are decided anew unless the spec keeps them
+    if cell.status != "ok" and not (spec.keep_unsupported and cell.status == "unsupported"):
         return None
     if cell.stream_fingerprint != stream_fingerprint(task, cell.n_test):
         warnings.warn(

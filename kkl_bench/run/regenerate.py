@@ -46,7 +46,7 @@ from kkl_bench.run.ledger import (
     record_job,
     running_seconds,
 )
-from kkl_bench.run.results import DamagedCellError, cell_path, read_cell, recorded_seconds
+from kkl_bench.run.results import recorded_seconds
 from kkl_bench.suite.task import Profile, Task
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.devices import resolve as resolve_device
@@ -268,7 +268,7 @@ def plan(
     source = source[source["profile"] == profile.name]
     wanted = set(zip(source["estimator"], source["task"], source["seed"], strict=True))
     known = _CostRecords(source)
-    planned, done, unsupported = [], 0, set()
+    planned, done = [], 0
     for row, cells in source.groupby("estimator", sort=False):
         derived = bool(variants.split_row(row)[1])
         spec = RunSpec(
@@ -282,13 +282,12 @@ def plan(
             tracks=tuple(dict.fromkeys(cells["track"])),
             command=command,
             own_rows_only=not derived,
+            keep_unsupported=True,
             device=device,
         )
         todo, cached = harness.plan(spec)
         finished = [(c.estimator, c.task, c.seed) for c in cached]
-        decided = _decided_unsupported(spec, todo)
-        unsupported |= decided
-        done += sum(key in wanted for key in [*finished, *decided])
+        done += sum(key in wanted for key in finished)
         known.made(key for key in finished if key in wanted)
         planned.append((spec, todo))
     recorded = read_ledger(into)
@@ -296,12 +295,7 @@ def plan(
     jobs = []
     for spec, todo in planned:
         for job in todo:
-            keys = [(job.estimator, t.id, job.seed) for t in job.tasks]
-            tasks = tuple(
-                t
-                for t, key in zip(job.tasks, keys, strict=True)
-                if key in wanted and key not in unsupported
-            )
+            tasks = tuple(t for t in job.tasks if (job.estimator, t.id, job.seed) in wanted)
             if not tasks:
                 continue
             fit = tuple(t for t in _fit_of(spec, job) if (job.estimator, t.id, job.seed) in wanted)
@@ -323,33 +317,6 @@ def plan(
                 )
             )
     return Plan(jobs, len(wanted), done, rates)
-
-
-def _decided_unsupported(spec: RunSpec, jobs: list[Job]) -> set[tuple[str, str, int]]:
-    """``(row, task id, seed)`` of the cells of ``jobs`` that the target folder holds as
-    ``unsupported``. The harness decides such a cell anew at every run (no fit: a plugin
-    that gains support gets its cells); a regeneration, meant to run one commit's code
-    across its invocations, keeps them like its finished cells, so that what it has left
-    to do comes to nothing."""
-    decided = set()
-    for job in jobs:
-        for task in job.tasks:
-            path = cell_path(
-                spec.results_dir,
-                job.estimator,
-                task.system,
-                task.regime,
-                spec.profile.name,
-                job.seed,
-                task.track,
-            )
-            try:
-                status = read_cell(path).status if path.exists() else None
-            except DamagedCellError:
-                status = None  # the harness moves it aside and computes it again
-            if status == "unsupported":
-                decided.add((job.estimator, task.id, job.seed))
-    return decided
 
 
 def _fit_of(spec: RunSpec, job: Job) -> list[Task]:

@@ -60,6 +60,11 @@ class RunSpec:
     """Fit each estimator for its own row only: not its ``+logged`` row (fitted anew on
     each true plant's logged data) nor its ``+truth`` row (to score the own row's cells
     again after its fit changed, without the others' fits)."""
+    keep_unsupported: bool = False
+    """Keep the cells already decided ``unsupported`` like finished ones. A run decides
+    them anew (no fit: a plugin that gains support gets its cells); a regeneration, meant
+    to run one commit's code across its invocations, keeps them, so that what it has left
+    to do comes to nothing."""
 
     def __post_init__(self) -> None:
         if not self.estimators:
