@@ -19,6 +19,7 @@ from kkl_bench.run import harness, ledger, regenerate
 from kkl_bench.run.harness import Job
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import Task, get_profile
+from tests.git_repo import commit_all, git
 
 PROFILE = get_profile("quick")
 
@@ -258,14 +259,7 @@ def test_a_killed_attempt_s_meter_is_committed_with_the_results_and_counted_in_a
     killed.wait()
     (banked,) = ledger.killed_attempts(results, key)
 
-    def git(*arguments, cwd):
-        done = subprocess.run(["git", *arguments], cwd=cwd, capture_output=True, text=True)
-        assert done.returncode == 0, done.stdout + done.stderr
-
-    identity = ("-c", "user.name=t", "-c", "user.email=t@t")
-    git("init", "-q", cwd=tmp_path / "board")
-    git("add", ".", cwd=tmp_path / "board")
-    git(*identity, "commit", "-qm", "the refit so far", cwd=tmp_path / "board")
+    commit_all(tmp_path / "board", "the refit so far")
     git("clone", "-q", str(tmp_path / "board"), str(tmp_path / "clone"), cwd=tmp_path)
     cloned = tmp_path / "clone" / "results"
     assert not list(cloned.glob(f"{ledger.METER_FOLDER}/*/*.lock"))

@@ -3,7 +3,6 @@
 import json
 import math
 import os
-import subprocess
 
 import numpy as np
 import pytest
@@ -20,6 +19,7 @@ from kkl_bench.run.results import (
     write_cell,
 )
 from kkl_bench.support import provenance as provenance_module
+from tests.git_repo import commit_all
 
 
 def make_cell(**overrides):
@@ -104,15 +104,10 @@ def test_a_format_1_record_reads_as_a_paper_track_cell(tmp_path):
 
 
 def test_the_commit_is_dirty_for_changed_code_not_for_changed_results(tmp_path):
-    def git(*arguments):
-        subprocess.run(["git", "-C", str(tmp_path), *arguments], check=True, capture_output=True)
-
     (tmp_path / "leaderboard").mkdir()
     (tmp_path / "code.py").write_text("x = 1\n")
     (tmp_path / "leaderboard" / "cell.json").write_text("{}\n")
-    git("init", "-q")
-    git("add", ".")
-    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "start")
+    commit_all(tmp_path, "start")
     clean = provenance_module._git_commit(tmp_path)
     assert clean and not clean.endswith("-dirty")
     (tmp_path / "leaderboard" / "cell.json").write_text('{"rmse": 0.1}\n')  # a run wrote
