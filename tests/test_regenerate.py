@@ -121,9 +121,44 @@ def test_a_resumed_plan_counts_each_row_s_fits_left_at_the_rate_its_finished_fit
     ekf, ukf = resumed.jobs
     assert (ekf.rate, ukf.rate) == (2.0, 1.0)  # the UKF has no finished fit: its estimate
     assert resumed.expected_s == pytest.approx(2 * ekf.fit_s + ekf.scoring_s + ukf.estimate_s)
-    assert "The 2 jobs finished in this folder took 2.00 times their estimates (ekf 2.00)" in (
-        resumed.describe()
+    assert (
+        "The 2 jobs finished in this folder took 2.00 times their estimates; per row: ekf 2.00."
+        in (resumed.describe())
     )
+
+
+def test_a_row_s_rate_on_a_track_counts_its_jobs_of_that_track(published, tmp_path):
+    """A track's source cells were trained under budgets of their own, so a row's rate is
+    taken per track where its jobs there finished, and over all its tracks elsewhere."""
+    finished = {"wall_seconds": 1.0, "cells": 1, "failed": 0}
+    into = tmp_path / "into"
+    into.mkdir()
+    (into / ledger.LEDGER_FILE).write_text(
+        json.dumps(
+            {
+                "jobs": {  # the EKF at 2 times its estimate on the paper track, 10 on hard
+                    "ekf duffing seed7 [duffing/zero@v1]": {
+                        **finished, "seconds": 20.0, "estimate_s": 10.0
+                    },
+                    "ekf duffing seed7 [hard/duffing/sparse-sinusoid@v1]": {
+                        **finished, "seconds": 100.0, "estimate_s": 10.0
+                    },
+                }
+            }
+        )
+    )  # fmt: skip
+    resumed = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
+    rates = resumed.rates
+    assert rates.by_track == {("ekf", "paper"): 2.0, ("ekf", "hard"): 10.0}
+    assert rates.by_row == {"ekf": 6.0} and rates.overall == 6.0
+    assert (rates.rate("ekf", "hard"), rates.rate("ekf", "far-init"), rates.rate("ukf")) == (
+        10.0,
+        6.0,  # no finished job of that track: the row's rate over its tracks
+        1.0,
+    )
+    ekf, _ = resumed.jobs  # the fixture's EKF cells are of the paper track
+    assert ekf.rate == 2.0
+    assert "per row: ekf 6.00 (paper 2.00, hard 10.00)." in resumed.describe()
 
 
 def test_a_ledger_key_names_its_row_even_with_a_variant():
@@ -131,6 +166,9 @@ def test_a_ledger_key_names_its_row_even_with_a_variant():
         Job("particle_filter[n=20000]", "lorenz", (Task("lorenz", "zero"),), 2)
     )
     assert regenerate._row_of(key) == "particle_filter[n=20000]"
+    assert regenerate._track_of(key) == "paper"
+    hard = regenerate.job_key(Job("ekf", "vdp", (Task("vdp", "sparse-sinusoid", track="hard"),), 0))
+    assert regenerate._track_of(hard) == "hard"
     with pytest.raises(ValueError, match="not a regeneration ledger key"):
         regenerate._row_of("ekf")
 

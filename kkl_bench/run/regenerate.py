@@ -11,8 +11,8 @@ states its core-hours before it starts, and the progress bar counts estimated se
 of work, not cells. A job is a fit (it trains a model) or scores only (its models are
 trained by an earlier job, or already, for cells of other tracks). A resumed
 regeneration also says how many times their estimates the jobs it finished took, and
-counts the training of each row's remaining jobs at its row's rate
-(:func:`measured_rates`).
+counts the training of each row's remaining jobs at its row's rate on the job's track
+where one of its jobs there finished, else at its row's (:func:`measured_rates`).
 
 The run is resumable like ``kkl-bench run``: cells already in the target folder are
 skipped, and a killed training continues from its checkpoint in the model cache. Each
@@ -27,8 +27,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections import defaultdict
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ import pandas as pd
 
 from kkl_bench import variants
 from kkl_bench.protocol import DT
+from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.run import harness
 from kkl_bench.run.harness import Job, JobOutcome, RunSpec
 from kkl_bench.run.ledger import (
@@ -170,27 +172,43 @@ def _fits(jobs: list[PlannedJob]) -> str:
 @dataclass(frozen=True)
 class MeasuredRates:
     """How many times their estimates the jobs a regeneration finished took (processor
-    seconds over estimated seconds, from its ledger), per row and over all. Estimates come
-    from the source cells' records, made on another machine, at another commit and often
-    under another training rule, and the rows' rates differ widely, so a row's rate is
-    applied to its own jobs' training only."""
+    seconds over estimated seconds, from its ledger), per row, per row and track, and over
+    all. Estimates come from the source cells' records, made on another machine, at
+    another commit and often under another training rule, and the rates differ widely
+    between rows and, for one row, between tracks (a track's source cells were trained
+    under budgets of their own), so a job's training is counted at its row's rate on its
+    track where that is known, else at its row's."""
 
     by_row: dict[str, float]
     overall: float
     jobs: int
+    by_track: dict[tuple[str, str], float] = field(default_factory=dict)
+    """``(row, track)``: the rate of that row's finished jobs of that track."""
 
-    def rate(self, row: str) -> float:
-        """``row``'s measured rate; 1 (its estimate) for a row with no finished job."""
-        return self.by_row.get(row, 1.0)
+    def rate(self, row: str, track: str | None = None) -> float:
+        """``row``'s measured rate on ``track``, else its rate over every track; 1 (its
+        estimate) for a row with no finished job."""
+        return self.by_track.get((row, track), self.by_row.get(row, 1.0))
 
     def describe(self, expected_s: float) -> str:
-        rows = ", ".join(f"{row} {rate:.2f}" for row, rate in self.by_row.items())
+        rows = ", ".join(
+            f"{row} {rate:.2f}{self._tracks_of(row)}" for row, rate in self.by_row.items()
+        )
         return (
             f"The {self.jobs} jobs finished in this folder took {self.overall:.2f} times "
-            f"their estimates ({rows}); with the training of each of those rows at its rate "
-            f"and the others at their estimates, the jobs left take about "
+            f"their estimates; per row: {rows}. With the training of each of those rows at "
+            f"its rate (on the job's track, where one of its jobs there finished) and the "
+            f"others at their estimates, the jobs left take about "
             f"{expected_s / 3600:.1f} core-hours"
         )
+
+    def _tracks_of(self, row: str) -> str:
+        """`` (paper 1.98, hard 6.71)``: ``row``'s rate per track, where it has finished
+        jobs on more than one."""
+        tracks = {track: rate for (name, track), rate in self.by_track.items() if name == row}
+        if len(tracks) < 2:
+            return ""
+        return " (" + ", ".join(f"{track} {rate:.2f}" for track, rate in tracks.items()) + ")"
 
 
 class WorkDone:
@@ -223,28 +241,46 @@ class WorkDone:
 def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
     """The rates of the finished jobs of ``ledger`` (:func:`~kkl_bench.run.ledger.read_ledger`)
     whose estimates are positive; None if there are none."""
-    seconds: dict[str, float] = {}
-    estimated: dict[str, float] = {}
+    seconds: dict[tuple[str, str], float] = defaultdict(float)
+    estimated: dict[tuple[str, str], float] = defaultdict(float)
     jobs = 0
     for key, record in ledger["jobs"].items():
         if record["estimate_s"] > 0:
-            row = _row_of(key)
-            seconds[row] = seconds.get(row, 0.0) + record["seconds"]
-            estimated[row] = estimated.get(row, 0.0) + record["estimate_s"]
+            pair = (_row_of(key), _track_of(key))
+            seconds[pair] += record["seconds"]
+            estimated[pair] += record["estimate_s"]
             jobs += 1
     if not jobs:
         return None
-    by_row = {row: seconds[row] / estimated[row] for row in seconds}
-    overall = sum(seconds.values()) / sum(estimated.values())
-    return MeasuredRates(by_row, overall, jobs)
+
+    def rate_of(pairs: Iterable[tuple[str, str]]) -> float:
+        pairs = list(pairs)
+        return sum(seconds[pair] for pair in pairs) / sum(estimated[pair] for pair in pairs)
+
+    rows = dict.fromkeys(row for row, _ in seconds)
+    by_row = {row: rate_of(pair for pair in seconds if pair[0] == row) for row in rows}
+    by_track = {pair: rate_of([pair]) for pair in seconds}
+    return MeasuredRates(by_row, rate_of(seconds), jobs, by_track)
 
 
 def _row_of(key: str) -> str:
     """The row of a ledger key (:func:`job_key`)."""
-    matched = re.fullmatch(r"(.+) \S+ seed\d+ \[.*\]", key)
+    return _parsed(key).group(1)
+
+
+def _track_of(key: str) -> str:
+    """The track of a ledger key's fit: its first task's (:attr:`Task.id`, ``track/system/
+    regime@version``, the paper track's without the prefix)."""
+    first = _parsed(key).group(2).split(",")[0]
+    parts = first.split("/")
+    return parts[0] if len(parts) == 3 else PAPER_TRACK
+
+
+def _parsed(key: str) -> re.Match:
+    matched = re.fullmatch(r"(.+) \S+ seed\d+ \[(.*)\]", key)
     if matched is None:
         raise ValueError(f"not a regeneration ledger key: {key!r}")
-    return matched.group(1)
+    return matched
 
 
 def plan(
@@ -308,7 +344,9 @@ def plan(
                     job,
                     *known.seconds(job),
                     banked_s=sum(float(spent.get("seconds", 0.0)) for spent in attempts),
-                    rate=1.0 if rates is None else rates.rate(job.estimator),
+                    rate=1.0
+                    if rates is None
+                    else rates.rate(job.estimator, (fit or tasks)[0].track),
                     fit=fit,
                     # the fit's cells already made, where only its killed attempts wrote
                     earlier_cells=len(fit) - len(tasks)
