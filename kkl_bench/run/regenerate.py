@@ -344,9 +344,7 @@ def plan(
                     job,
                     *known.seconds(job),
                     banked_s=sum(float(spent.get("seconds", 0.0)) for spent in attempts),
-                    rate=1.0
-                    if rates is None
-                    else rates.rate(job.estimator, (fit or tasks)[0].track),
+                    rate=1.0 if rates is None else rates.rate(job.estimator, tasks[0].track),
                     fit=fit,
                     # the fit's cells already made, where only its killed attempts wrote
                     earlier_cells=len(fit) - len(tasks)
