@@ -10,7 +10,13 @@ import pytest
 from kkl_bench.analysis import comparisons
 from kkl_bench.analysis.comparisons import limit_frame
 from kkl_bench.analysis.leaderboard import grid_tables, track_summary_table
-from kkl_bench.analysis.significance import mark_column, ratio_lower_bound
+from kkl_bench.analysis.significance import (
+    SEED,
+    mark_column,
+    per_seed_means,
+    ratio_lower_bound,
+    resampled_ratios,
+)
 from kkl_bench.analysis.summary import (
     paper_results,
     summary_table,
@@ -131,6 +137,27 @@ def test_bootstrap_bound_of_a_constant_ratio_is_that_ratio():
     best = np.array([[0.1, 0.2, 0.4]])
     assert ratio_lower_bound(3 * best, best) == pytest.approx(3.0)
     assert ratio_lower_bound(best, best) == pytest.approx(1.0)
+
+
+def test_the_bootstrap_draws_trajectories_then_each_sides_seeds_from_its_seed():
+    """The documented resampling, written out: one generator seeded with ``SEED`` draws the
+    shared trajectory indices, then the other entry's seeds, then the best's; a column's
+    comparisons reuse those draws and the best's per-seed means, with the same numbers."""
+    rng = np.random.default_rng(SEED)
+    other, best = rng.lognormal(size=(2, 7)), rng.lognormal(size=(3, 7))
+    draws = np.random.default_rng(SEED)
+    trajectories = draws.integers(7, size=(50, 7))
+    other_seeds, best_seeds = draws.integers(2, size=(50, 2)), draws.integers(3, size=(50, 3))
+
+    def means(rmse, seeds):
+        per_seed = rmse[:, trajectories].mean(axis=-1)  # (n_seeds, n_resamples)
+        return per_seed[seeds, np.arange(50)[:, None]].mean(axis=1)
+
+    expected = means(other, other_seeds) / means(best, best_seeds)
+    np.testing.assert_array_equal(resampled_ratios(other, best, 50), expected)
+    np.testing.assert_array_equal(resampled_ratios(other, best, 50), expected)  # drawn once
+    shared = per_seed_means(best, trajectories)
+    np.testing.assert_array_equal(resampled_ratios(other, best, 50, shared), expected)
 
 
 def test_seed_spread_alone_can_make_a_paired_win_a_tie():

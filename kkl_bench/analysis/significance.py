@@ -26,6 +26,7 @@ uses a fixed seed, so the marks are reproducible.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 
 import numpy as np
@@ -37,43 +38,78 @@ MARGIN = 0.01
 """Practical-equivalence margin of the marks: a win must be by more than 1 %."""
 
 
-def resampled_means(
-    rmse: np.ndarray, trajectories: np.ndarray, rng: np.random.Generator
-) -> np.ndarray:
-    """Mean RMSE of each resample ``(n_resamples,)``.
+@functools.cache
+def _draws(
+    n_trajectories: int, n_seeds_other: int, n_seeds_best: int, n_resamples: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The resamples of :func:`resampled_ratios`, drawn from :data:`SEED` in its order: the
+    shared trajectory indices ``(n_resamples, n_trajectories)``, then each side's seed
+    indices ``(n_resamples, n_seeds)``. They depend on the shapes alone, so a column's
+    comparisons draw them once (read-only arrays)."""
+    rng = np.random.default_rng(SEED)
+    draws = (
+        rng.integers(n_trajectories, size=(n_resamples, n_trajectories)),
+        rng.integers(n_seeds_other, size=(n_resamples, n_seeds_other)),
+        rng.integers(n_seeds_best, size=(n_resamples, n_seeds_best)),
+    )
+    for draw in draws:
+        draw.flags.writeable = False
+    return draws
+
+
+def per_seed_means(rmse: np.ndarray, trajectories: np.ndarray) -> np.ndarray:
+    """Each seed's mean RMSE over each resample of the trajectories ``(n_seeds, n_resamples)``.
 
     ``rmse: (n_seeds, n_trajectories)``; ``trajectories: (n_resamples, n_trajectories)``
-    are the (shared) resampled trajectory indices; seeds are resampled here.
+    the (shared) resampled trajectory indices.
     """
-    per_seed = rmse[:, trajectories].mean(axis=-1)  # (n_seeds, n_resamples)
-    n_seeds, n_resamples = per_seed.shape
-    seeds = rng.integers(n_seeds, size=(n_resamples, n_seeds))
-    return per_seed[seeds, np.arange(n_resamples)[:, None]].mean(axis=1)
+    return rmse[:, trajectories].mean(axis=-1)
+
+
+def resampled_means(per_seed: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """Mean RMSE of each resample ``(n_resamples,)``: ``per_seed`` (:func:`per_seed_means`,
+    ``(n_seeds, n_resamples)``) averaged over the resampled seed indices ``seeds: (n_resamples,
+    n_seeds)``."""
+    return per_seed[seeds, np.arange(len(seeds))[:, None]].mean(axis=1)
 
 
 def resampled_ratios(
-    other: np.ndarray, best: np.ndarray, n_resamples: int = N_RESAMPLES
+    other: np.ndarray,
+    best: np.ndarray,
+    n_resamples: int = N_RESAMPLES,
+    best_per_seed: np.ndarray | None = None,
 ) -> np.ndarray:
     """``mean(other) / mean(best)`` over paired hierarchical resamples ``(n_resamples,)``.
 
     ``other: (n_seeds_a, n)`` and ``best: (n_seeds_b, n)`` per-trajectory RMSE on the
-    same ``n`` test trajectories.
+    same ``n`` test trajectories; ``best_per_seed``, if given, is ``best``'s
+    :func:`per_seed_means` over these resamples (a column compares every entry with one best).
     """
     other, best = np.asarray(other, float), np.asarray(best, float)
     if other.shape[1] != best.shape[1]:
         raise ValueError(
             f"paired comparison needs the same test trajectories: {other.shape[1]} vs {best.shape[1]}"
         )
-    rng = np.random.default_rng(SEED)
-    trajectories = rng.integers(best.shape[1], size=(n_resamples, best.shape[1]))
-    return resampled_means(other, trajectories, rng) / resampled_means(best, trajectories, rng)
+    trajectories, seeds_other, seeds_best = _draws(
+        best.shape[1], other.shape[0], best.shape[0], n_resamples
+    )
+    if best_per_seed is None:
+        best_per_seed = per_seed_means(best, trajectories)
+    other_means = resampled_means(per_seed_means(other, trajectories), seeds_other)
+    return other_means / resampled_means(best_per_seed, seeds_best)
 
 
 def ratio_lower_bound(
-    other: np.ndarray, best: np.ndarray, n_resamples: int = N_RESAMPLES, level: float = LEVEL
+    other: np.ndarray,
+    best: np.ndarray,
+    n_resamples: int = N_RESAMPLES,
+    level: float = LEVEL,
+    best_per_seed: np.ndarray | None = None,
 ) -> float:
-    """One-sided lower confidence bound (at ``level``) of ``mean(other) / mean(best)``."""
-    return float(np.quantile(resampled_ratios(other, best, n_resamples), level))
+    """One-sided lower confidence bound (at ``level``) of ``mean(other) / mean(best)``
+    (``best_per_seed`` as in :func:`resampled_ratios`)."""
+    ratios = resampled_ratios(other, best, n_resamples, best_per_seed)
+    return float(np.quantile(ratios, level))
 
 
 def compare(a: np.ndarray, b: np.ndarray, level: float = LEVEL) -> dict[str, float | str]:
@@ -116,10 +152,13 @@ def mark_column(rmse: Mapping[str, np.ndarray], margin: float = MARGIN) -> dict[
     if len(finite) < 2:
         return marks
     best = min(finite, key=lambda name: finite[name].mean())
+    trajectories = _draws(finite[best].shape[1], 1, 1, N_RESAMPLES)[0]  # every pair's
+    best_per_seed = per_seed_means(finite[best], trajectories)
     tied = [
         name
         for name, values in finite.items()
-        if name != best and ratio_lower_bound(values, finite[best]) <= 1.0 + margin
+        if name != best
+        and ratio_lower_bound(values, finite[best], best_per_seed=best_per_seed) <= 1.0 + margin
     ]
     marks[best] = "tied" if tied else "best"
     for name in tied:

@@ -178,14 +178,18 @@ def summary_table(
         )
     summary = pd.DataFrame(rows)
     summary["mark"] = _marks(summary, margin)
-    if with_paper:
-        paper = paper_results().rename(columns={"rmse": "rmse_mean", "smape_percent": "smape_mean"})
-        paper["estimator"] = PAPER_PREFIX + paper.pop("method")
-        paper["status"] = "ok"
-        paper["n_diverged"] = 0
-        paper["mark"] = ""
-        summary = pd.concat([summary, paper], ignore_index=True)
-    return summary
+    return with_paper_rows(summary) if with_paper else summary
+
+
+def with_paper_rows(summary: pd.DataFrame) -> pd.DataFrame:
+    """``summary`` (the paper track's :func:`summary_table`) followed by the paper's own
+    numbers, one row per method and cell, named ``PAPER_PREFIX + method`` and never marked."""
+    paper = paper_results().rename(columns={"rmse": "rmse_mean", "smape_percent": "smape_mean"})
+    paper["estimator"] = PAPER_PREFIX + paper.pop("method")
+    paper["status"] = "ok"
+    paper["n_diverged"] = 0
+    paper["mark"] = ""
+    return pd.concat([summary, paper], ignore_index=True)
 
 
 def _recorded_family(cells: pd.DataFrame) -> str:

@@ -42,9 +42,18 @@ class TrackTables:
     cells: dict[str, pd.DataFrame]
 
     @classmethod
-    def of(cls, results: pd.DataFrame, margin: float) -> TrackTables:
+    def of(
+        cls, results: pd.DataFrame, margin: float, paper_summary: pd.DataFrame | None = None
+    ) -> TrackTables:
+        """The tables of ``results`` (every track's cells); ``paper_summary``, if given, is
+        the paper track's :func:`summary_table` at ``margin``, already computed."""
         tracks = dict(iter(results.groupby("track", sort=False)))  # in order of appearance
-        summaries = {name: summary_table(of, margin=margin) for name, of in tracks.items()}
+        summaries = {
+            name: paper_summary
+            if name == PAPER_TRACK and paper_summary is not None
+            else summary_table(of, margin=margin)
+            for name, of in tracks.items()
+        }
         cells = {name: tracks[name] for name in sorted(tracks) if name != PAPER_TRACK}
         if not cells:
             return cls({}, pd.DataFrame(), pd.DataFrame(), {})

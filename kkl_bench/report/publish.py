@@ -35,7 +35,13 @@ from kkl_bench.analysis import figures
 from kkl_bench.analysis.cost import COST_FILE, read_costs, with_measured_costs
 from kkl_bench.analysis.document import Section
 from kkl_bench.analysis.significance import MARGIN
-from kkl_bench.analysis.summary import PAPER_PREFIX, REGIME_TITLES, SYSTEM_TITLES, summary_table
+from kkl_bench.analysis.summary import (
+    PAPER_PREFIX,
+    REGIME_TITLES,
+    SYSTEM_TITLES,
+    summary_table,
+    with_paper_rows,
+)
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report import html, markdown
 from kkl_bench.report.board import Board, TrackTables, introduction, paper_sections, reading_guide
@@ -112,12 +118,13 @@ def publish(
         )
     link = Path(os.path.relpath(Path(results_dir).resolve(), Path(out).resolve())).as_posix()
     previous, previous_figures = owned_files(out, profile, link, force)
-    summary = summary_table(paper, with_paper=True, margin=margin)
+    paper_summary = summary_table(paper, margin=margin)
+    summary = with_paper_rows(paper_summary)
     costs = read_costs(out / COST_FILE)
     if costs is not None:
         costs = costs[costs["track"] == PAPER_TRACK]
         summary = with_measured_costs(summary, costs)
-    tables = TrackTables.of(results, margin)
+    tables = TrackTables.of(results, margin, paper_summary)
     out.mkdir(parents=True, exist_ok=True)
     figure_digests = draw_figures(
         summary, results_dir, profile, out, tables.summaries, previous_figures
