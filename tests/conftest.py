@@ -6,6 +6,8 @@ from hypothesis import HealthCheck, settings
 from kkl_bench.registry import estimators
 from kkl_bench.support.executors import threads_per_worker
 
+pytest_plugins = ["pytester", "tests.numba_compilations"]
+
 
 def pytest_addoption(parser):
     parser.addoption(
