@@ -152,7 +152,8 @@ def mark_column(rmse: Mapping[str, np.ndarray], margin: float = MARGIN) -> dict[
     if len(finite) < 2:
         return marks
     best = min(finite, key=lambda name: finite[name].mean())
-    trajectories = _draws(finite[best].shape[1], 1, 1, N_RESAMPLES)[0]  # every pair's
+    # drawn first, so the same whatever the seed counts: every comparison's trajectories
+    trajectories = _draws(finite[best].shape[1], 1, 1, N_RESAMPLES)[0]
     best_per_seed = per_seed_means(finite[best], trajectories)
     tied = [
         name
