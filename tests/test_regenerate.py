@@ -122,8 +122,10 @@ def test_a_resumed_plan_counts_each_row_s_fits_left_at_the_rate_its_finished_fit
     assert (ekf.rate, ukf.rate) == (2.0, 1.0)  # the UKF has no finished fit: its estimate
     assert resumed.expected_s == pytest.approx(2 * ekf.fit_s + ekf.scoring_s + ukf.estimate_s)
     described = resumed.describe()
-    assert "The 2 jobs finished in this folder took 2.00 times their estimates" in described
-    assert "per row: ekf 2.00." in described
+    assert (
+        "The 2 jobs finished in this folder took 2.00 times their estimates; per row: ekf 2.00."
+        in described
+    )
 
 
 def test_a_row_s_rate_on_a_track_counts_its_jobs_of_that_track(published, tmp_path):
