@@ -162,7 +162,15 @@ def test_a_file_from_before_merged_runs_reads_as_one_run_beside_its_own_ekf(tmp_
     assert read["reference_us_per_trajectory_step"].tolist() == [100.0, 100.0]
 
 
-def test_cost_command_merges_its_rows_and_times_the_ekf_beside_them(tmp_path, capsys):
+def test_cost_command_merges_its_rows_and_times_the_ekf_beside_them(tmp_path, capsys, monkeypatch):
+    timed = []  # (estimator, engine) of every timed call, per run
+    round_robin = cost.fastest_round_robin
+
+    def recorded(calls, *arguments, **options):
+        timed.append({(name, engine) for name, engine, _ in calls})
+        return round_robin(calls, *arguments, **options)
+
+    monkeypatch.setattr(cost, "fastest_round_robin", recorded)
     out = tmp_path / "board"
     arguments = ["cost", "--system", "duffing", "--profile", "quick", "--rounds", "1"]
     assert main([*arguments, "--estimator", "ekf", "ukf", "--out", str(out)]) == 0
@@ -190,6 +198,9 @@ def test_cost_command_merges_its_rows_and_times_the_ekf_beside_them(tmp_path, ca
     assert again[again["estimator"] == "ekf"].equals(ekf)
     assert again["reference_us_per_trajectory_step"].notna().all()
     assert "wrote 4 rows (run 2)" in capsys.readouterr().out
+    # a row is timed on both engines; the EKF beside another row only on the one it reads
+    both = {(name, engine) for name in ("ekf", "ukf") for engine in ("compiled", "reference")}
+    assert timed == [both, {("ukf", "compiled"), ("ukf", "reference"), ("ekf", "compiled")}]
     assert main([*arguments, "--estimator", "ukf", "--replace", "--out", str(out)]) == 0
     assert set(cost.read_costs(out / cost.COST_FILE)["estimator"]) == {"ukf"}
     (tmp_path / "not-costs.csv").write_text("a,b\n1,2\n")

@@ -289,7 +289,8 @@ def measure(
     them, on the test set of every task of ``spec`` (:func:`fastest_round_robin`), and
     merge one row per (estimator, system, task) into ``out`` (CSV, :data:`COLUMNS`).
 
-    The reference's own rows enter ``out`` only if ``spec`` asks for it. Each estimator
+    The reference's own rows enter ``out`` only if ``spec`` asks for it; beside other
+    rows it is timed on the engine its column reads (its compiled one). Each estimator
     is fitted as a run fits it (:func:`fitted_for_tasks`: once per system, or once per
     measurement model on a track fitted per task) with the first seed it runs with (from
     the cache when it holds the model). ``out`` is written after every round: an
@@ -299,8 +300,10 @@ def measure(
     commit = provenance()["git_commit"]  # the code that runs, read before anything is loaded
     stored = None if replace else read_costs(out)
     run = 1 if stored is None or stored.empty else int(stored["run"].max()) + 1
-    timed = list(dict.fromkeys([*spec.estimators, REFERENCE]))
-    engines = {name: timed_variants(name) for name in timed}
+    engines = {name: timed_variants(name) for name in spec.estimators}
+    if REFERENCE not in engines:  # beside the rows, only the engine its column reads
+        engines[REFERENCE] = dict(list(timed_variants(REFERENCE).items())[:1])
+    timed = list(engines)
     fitted, test_sets = {}, {}
     for name, system in tqdm(
         [(name, system) for name in timed for system in spec.systems],

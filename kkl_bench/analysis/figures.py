@@ -28,7 +28,8 @@ REFERENCE = "ukf"
 
 
 def pyplot():
-    """matplotlib's pyplot on the non-interactive Agg backend, with reproducible output."""
+    """matplotlib's pyplot on the non-interactive Agg backend, its SVG ids salted alike in
+    every run (:func:`save`)."""
     try:
         import matplotlib
     except ImportError:
@@ -296,7 +297,9 @@ def curves_figure(curves: pd.DataFrame):
 
 
 def save(figure, path_without_suffix: Path) -> list[Path]:
-    """Write ``figure`` as PNG and SVG (reproducible bytes); returns both paths."""
+    """Write ``figure`` as PNG and SVG, without dates or versions, so one machine writes
+    the same bytes each time (another machine's SVG may differ in the sixth decimal of a
+    coordinate); returns both paths."""
     plt = pyplot()
     path_without_suffix.parent.mkdir(parents=True, exist_ok=True)
     paths = []
