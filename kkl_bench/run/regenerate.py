@@ -98,12 +98,6 @@ class PlannedJob:
         return self.fit_s * self.rate + self.scoring_s
 
     @property
-    def work_done_s(self) -> float:
-        """The share of its expected work done before this invocation (its banked seconds,
-        at most the expected): a resumed training continues from its checkpoint."""
-        return min(self.banked_s, self.expected_s)
-
-    @property
     def key(self) -> str:
         job = self.job
         return job_key(Job(job.estimator, job.system, self.fit or job.tasks, job.seed))
@@ -216,8 +210,8 @@ class WorkDone:
     progress bar that moves while fits train, not only when they end: a finished job
     counts its expected work, a running one the processor seconds it has spent (its
     killed attempts' and, from its meter, this invocation's: ``since_ns``), at most its
-    expected work. Before anything runs it is the plan's banked work
-    (:attr:`PlannedJob.work_done_s`)."""
+    expected work. Before anything runs it is the plan's banked work (a resumed
+    training continues from its checkpoint), each job's at most its expected work."""
 
     def __init__(self, planned: Plan, into: Path, since_ns: int) -> None:
         self.jobs, self.into, self.since_ns = planned.jobs, into, since_ns
