@@ -11,13 +11,16 @@ from kkl_bench.analysis import trainings
 from kkl_bench.cli import main
 
 
-def report(decoder_steps, stopped="plateau", best=None, level="sine 0.2-0.8 rad/s"):
+def report(
+    decoder_steps, stopped="plateau", best=None, level="sine 0.2-0.8 rad/s", halved_at=(4000,)
+):
     """A fit report of a Phase-1 decoder and one curriculum level (whose name has dots)."""
     decoder = {
         "validation_curve": [[0, 1.0], [decoder_steps, 0.1]],
         "steps": decoder_steps,
         "stopped": stopped,
         "best_step": decoder_steps if best is None else best,
+        "lr_reductions": list(halved_at),
     }
     old_level = {"validation_curve": [[0, 1.0], [200, 0.5], [400, 0.4]]}  # before the rule
     return {
@@ -121,13 +124,19 @@ def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, cap
     assert main([*run, "--estimator", "autonomous_kkl", "ekf"]) == 0
     capsys.readouterr()
     assert main(["trainings", "--results", results, "--before", results]) == 0
-    steps, converged, change = capsys.readouterr().out.split("\n\n")
+    steps, converged, capped, change = capsys.readouterr().out.split("\n\n")
     assert "| autonomous_kkl | vdp      | phase1_log.encoder |" in steps
     assert "| autonomous_kkl | vdp      | phase1_log.decoder |" in steps and "ekf" not in steps
     assert "of 1 learned cells" in converged  # the filter's cell is not a learned one
+    # the quick profile's caps are small: its trainings end there, and are named
+    assert capped.startswith("Reached the cap (") and "`autonomous_kkl` on vdp, seed 0" in capped
+    pytest.importorskip("matplotlib")  # and the board names them under its cost table
+    board = tmp_path / "board"
+    assert main(["publish", "--results", results, "--profile", "quick", "--out", str(board)]) == 0
+    assert capped.strip() in (board / "README.md").read_text().replace("\n", " ")
     assert "| ekf " in change and change.count("|                1 |") == 2  # after / before
     assert main(["trainings", "--results", results, "--before", results, "--by-regime"]) == 0
-    assert "| Row            | System   | Regime   |" in capsys.readouterr().out.split("\n\n")[2]
+    assert "| Row            | System   | Regime   |" in capsys.readouterr().out.split("\n\n")[-1]
     assert main(["trainings", "--results", results, "--by-regime"]) == 2
     assert "--by-regime compares with --before DIR" in capsys.readouterr().err
     filters = str(tmp_path / "filters")
@@ -183,6 +192,34 @@ def test_a_diverged_training_says_why_and_which_state_was_kept():
         in sentence
     )
     assert trainings.diverged_sentence(trainings.training_records(cells())) == ""
+
+
+def test_a_training_at_its_cap_is_named_with_how_far_its_learning_rate_came_down():
+    records = trainings.training_records(cells())  # seed 1's decoder reached its cap
+    assert records["halvings"].isna().tolist() == [False, True, False, True]  # the level:
+    assert records["halvings"].dropna().tolist() == [1, 1]  # from before the rule
+    assert trainings.capped_sentence(records) == (
+        "Reached the cap (1 of 4 trainings): `curriculum_kkl` on duffing, seed 1, "
+        "`phase1_log.decoder`: 20000 steps, its learning rate halved once (the last at step "
+        "4000), the state of step 14000 kept."
+    )
+    frame = cells()
+    halved = report(30000, "cap", best=29800, halved_at=(9000, 17400, 21000, 25200, 29600))
+    unhalved = report(30000, "cap", best=30000, halved_at=())
+    for index, fit in ((0, halved), (1, halved), (2, unhalved), (3, unhalved)):
+        frame.at[index, "fit_report"] = fit
+    sentence = trainings.capped_sentence(trainings.training_records(frame), "fits' trainings")
+    assert sentence.startswith("Reached the cap (2 of 4 fits' trainings): ")
+    assert (
+        "seed 0, `phase1_log.decoder`: 30000 steps, its learning rate halved 5 times (the last "
+        "at step 29600), the state of step 29800 kept; " in sentence
+    )
+    assert sentence.endswith(
+        "seed 1, `phase1_log.decoder`: 30000 steps, its learning rate never halved, the state "
+        "of step 30000 kept."
+    )
+    plateaued = cells().assign(fit_report=[report(12000)] * 4 + [{}])
+    assert trainings.capped_sentence(trainings.training_records(plateaued)) == ""
 
 
 def test_the_board_reads_a_cell_converged_only_when_every_seeds_fit_did():

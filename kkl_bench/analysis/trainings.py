@@ -42,6 +42,8 @@ TRAINING_COLUMNS = [
     "steps",
     "stopped",
     "best_step",
+    "halvings",
+    "last_halving",
     "diverged",
 ]
 
@@ -51,9 +53,11 @@ def training_records(cells: pd.DataFrame) -> pd.DataFrame:
     :func:`~kkl_bench.run.results.load_results`): ``estimator``, ``system``, ``seed``,
     ``training`` (its path in the fit report, such as ``phase1_log.decoder``),
     ``steps``, ``stopped`` (:data:`STOPS`), ``best_step``, the step of the state kept,
-    and ``diverged``, why the training diverged (:func:`divergence`; empty if it did not).
-    A training from before the plateau rule records neither its steps nor a best step:
-    its steps are read as its curve's last measurement's, and it kept its last step
+    ``halvings`` and ``last_halving``, how many times the plateau rule halved its learning
+    rate and at which step it last did (NaN where it never did), and ``diverged``, why the
+    training diverged (:func:`divergence`; empty if it did not). A training from before
+    the plateau rule records neither its steps nor a best step nor halvings (NaN): its
+    steps are read as its curve's last measurement's, and it kept its last step
     (protocol 6.5)."""
     records, seen = [], set()
     for cell in cells.itertuples(index=False):
@@ -67,6 +71,7 @@ def training_records(cells: pd.DataFrame) -> pd.DataFrame:
         for path, training in trainings(report):
             curve = training["validation_curve"]
             steps = training.get("steps", curve[-1][0] if curve else np.nan)
+            halved_at = training.get("lr_reductions")
             records.append(
                 {
                     "estimator": cell.estimator,
@@ -78,6 +83,8 @@ def training_records(cells: pd.DataFrame) -> pd.DataFrame:
                     "best_step": training.get(
                         "best_step", np.nan if "stopped" in training else steps
                     ),
+                    "halvings": np.nan if halved_at is None else len(halved_at),
+                    "last_halving": halved_at[-1] if halved_at else np.nan,
                     "diverged": divergence(training),
                 }
             )
@@ -120,6 +127,32 @@ def diverged_sentence(records: pd.DataFrame, counted: str = "trainings") -> str:
         for row in diverged.itertuples(index=False)
     ]
     return f"Diverged ({len(listed)} of {len(records)} {counted}): " + "; ".join(listed) + "."
+
+
+def capped_sentence(records: pd.DataFrame, counted: str = "trainings") -> str:
+    """The trainings among ``records`` (:func:`training_records`) that the plateau rule
+    let run to their cap of steps (Converged ``no``: the exceptions protocol 6.5 has the
+    board name), each with its steps, how far its learning rate had come down and the
+    step of the state kept, as one sentence (``counted`` names what ``records`` are);
+    ``""`` if none reached it."""
+    capped = records[records["stopped"] == "cap"]
+    if capped.empty:
+        return ""
+
+    def halved(row) -> str:
+        if not row.halvings > 0:
+            return "its learning rate never halved"
+        times = "once" if row.halvings == 1 else f"{row.halvings:.0f} times"
+        return f"its learning rate halved {times} (the last at step {row.last_halving:.0f})"
+
+    listed = [
+        f"`{row.estimator}` on {row.system}, seed {row.seed}, `{row.training}`: "
+        f"{row.steps:.0f} steps, {halved(row)}, the state of step {row.best_step:.0f} kept"
+        for row in capped.itertuples(index=False)
+    ]
+    return (
+        f"Reached the cap ({len(listed)} of {len(records)} {counted}): " + "; ".join(listed) + "."
+    )
 
 
 def own_records(records: pd.DataFrame, shared: pd.DataFrame) -> pd.DataFrame:

@@ -127,7 +127,12 @@ def print_trainings(args: argparse.Namespace) -> int:
     if records.empty:
         raise ValueError(f"no trained fits among the {args.track} track's cells in {args.results}/")
     print(markdown.table(Table(trainings.training_table(records), floatfmt=".5g")))
-    print("\n" + trainings.converged_sentence(trainings.cell_verdicts(results)))
+    said = [
+        trainings.converged_sentence(trainings.cell_verdicts(results)),
+        trainings.capped_sentence(records),
+        trainings.diverged_sentence(records),
+    ]
+    print("\n" + "\n\n".join(sentence for sentence in said if sentence))
     if args.before is not None:
         before = of_track(load_results(args.before, profile=results["profile"].iloc[0]), args.track)
         change = trainings.rmse_change(before, results, by_regime=args.by_regime)

@@ -407,6 +407,7 @@ def cost_section(board: Board) -> Section:
     blocks: list = [Text(COST_TEXT + cost_source(board.costs)), cost_table(board.summary)]
     said = [
         trainings.converged_by_track(board.cells_of_every_track),
+        trainings.capped_sentence(board.paper_trainings),
         trainings.diverged_sentence(board.paper_trainings),
     ]
     blocks += [Text(sentence) for sentence in said if sentence]

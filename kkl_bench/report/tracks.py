@@ -232,14 +232,16 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
             Text(CONDITIONS_TEXT),
             track_summary_table(grouped, "condition", id=f"track-{name}-conditions"),
         ]
-    diverged = trainings.diverged_sentence(
-        trainings.own_records(
-            trainings.training_records(board.tables.cells[name]), board.paper_trainings
-        ),
-        "trainings of this track's fits not shared with the paper track",
+    own = trainings.own_records(
+        trainings.training_records(board.tables.cells[name]), board.paper_trainings
     )
-    if diverged:
-        blocks.append(Text(diverged))
+    counted = "trainings of this track's fits not shared with the paper track"
+    for said in (
+        trainings.capped_sentence(own, counted),
+        trainings.diverged_sentence(own, counted),
+    ):
+        if said:
+            blocks.append(Text(said))
     reasons = unsupported_reasons(board.tables.cells[name])
     if reasons:
         blocks.append(
