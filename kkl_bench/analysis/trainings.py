@@ -118,15 +118,12 @@ def diverged_sentence(records: pd.DataFrame, counted: str = "trainings") -> str:
     """The trainings among ``records`` (:func:`training_records`) that diverged, each with
     its reason and, under the plateau rule, the step of the state kept, as one sentence
     (``counted`` names what ``records`` are); ``""`` if none did."""
-    diverged = records[records["diverged"] != ""]
-    if diverged.empty:
-        return ""
-    listed = [
-        f"`{row.estimator}` on {row.system}, seed {row.seed}, `{row.training}`: {row.diverged}"
-        + (f" (the state of step {row.best_step:.0f} kept)" if row.stopped == DIVERGED else "")
-        for row in diverged.itertuples(index=False)
-    ]
-    return f"Diverged ({len(listed)} of {len(records)} {counted}): " + "; ".join(listed) + "."
+
+    def why(row) -> str:
+        kept = f" (the state of step {row.best_step:.0f} kept)" if row.stopped == DIVERGED else ""
+        return row.diverged + kept
+
+    return _named("Diverged", records[records["diverged"] != ""], records, counted, why)
 
 
 def capped_sentence(records: pd.DataFrame, counted: str = "trainings") -> str:
@@ -135,24 +132,30 @@ def capped_sentence(records: pd.DataFrame, counted: str = "trainings") -> str:
     board name), each with its steps, how far its learning rate had come down and the
     step of the state kept, as one sentence (``counted`` names what ``records`` are);
     ``""`` if none reached it."""
-    capped = records[records["stopped"] == "cap"]
-    if capped.empty:
-        return ""
 
-    def halved(row) -> str:
+    def how_far(row) -> str:
         if not row.halvings > 0:
-            return "its learning rate never halved"
-        times = "once" if row.halvings == 1 else f"{row.halvings:.0f} times"
-        return f"its learning rate halved {times} (the last at step {row.last_halving:.0f})"
+            halved = "its learning rate never halved"
+        else:
+            times = "once" if row.halvings == 1 else f"{row.halvings:.0f} times"
+            halved = f"its learning rate halved {times} (the last at step {row.last_halving:.0f})"
+        return f"{row.steps:.0f} steps, {halved}, the state of step {row.best_step:.0f} kept"
 
-    listed = [
-        f"`{row.estimator}` on {row.system}, seed {row.seed}, `{row.training}`: "
-        f"{row.steps:.0f} steps, {halved(row)}, the state of step {row.best_step:.0f} kept"
-        for row in capped.itertuples(index=False)
-    ]
-    return (
-        f"Reached the cap ({len(listed)} of {len(records)} {counted}): " + "; ".join(listed) + "."
+    return _named(
+        "Reached the cap", records[records["stopped"] == "cap"], records, counted, how_far
     )
+
+
+def _named(title: str, named: pd.DataFrame, records: pd.DataFrame, counted: str, describe) -> str:
+    """``title (k of n counted): `row` on system, seed s, `training`: describe(row); ... .``
+    for the ``named`` rows of ``records`` (:func:`training_records`); ``""`` if none."""
+    if named.empty:
+        return ""
+    listed = [
+        f"`{row.estimator}` on {row.system}, seed {row.seed}, `{row.training}`: {describe(row)}"
+        for row in named.itertuples(index=False)
+    ]
+    return f"{title} ({len(listed)} of {len(records)} {counted}): " + "; ".join(listed) + "."
 
 
 def own_records(records: pd.DataFrame, shared: pd.DataFrame) -> pd.DataFrame:
