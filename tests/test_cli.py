@@ -3,6 +3,7 @@
 import io
 import json
 import warnings
+from importlib.metadata import version
 
 import numpy as np
 import pandas as pd
@@ -13,6 +14,7 @@ from kkl_bench.cli import main, recorded_command
 from kkl_bench.cli.run import BAR, advance
 from kkl_bench.estimator import Estimator
 from kkl_bench.registry import estimators
+from kkl_bench.support.provenance import provenance
 from kkl_bench.testing import check_estimator
 
 
@@ -365,3 +367,14 @@ def test_the_progress_bar_stops_at_its_total_when_the_shares_sum_above_it():
             for share in (0.1, 0.2):  # 0.1 + 0.2 > 0.3 in floating point
                 advance(bar, share)
             assert bar.n == bar.total
+
+
+def test_version_prints_what_a_cell_records_and_exits(capsys):
+    with pytest.raises(SystemExit) as exit_status:
+        main(["--version"])
+    assert exit_status.value.code == 0
+    first, packages = capsys.readouterr().out.strip().splitlines()
+    recorded = provenance()
+    commit = recorded["git_commit"] or "not a git checkout"
+    assert first == f"kkl-bench {version('kkl-bench')} (git {commit})"
+    assert f"torch {version('torch')}" in packages and f"Python {recorded['python']}" in packages

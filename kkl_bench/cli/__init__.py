@@ -19,6 +19,7 @@ from pathlib import Path
 from kkl_bench.cli import admin, publishing, regenerate, run, tables, verify
 from kkl_bench.registry import PluginLoadError, UnknownNameError
 from kkl_bench.suite.task import ProfileError
+from kkl_bench.support.provenance import provenance
 
 EXAMPLES = """\
 examples:
@@ -40,6 +41,7 @@ examples:
   kkl-bench check my_estimator --system duffing lorenz
   kkl-bench verify --sample 8
   kkl-bench regenerate --into regenerated --dry-run
+  kkl-bench --version
 """
 
 COMMANDS = (admin, run, regenerate, tables, publishing, verify)
@@ -53,10 +55,39 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument(
+        "--version",
+        action=_Version,
+        help="print the versions and the git commit a cell of this installation records, and exit",
+    )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in COMMANDS:
         module.add_parser(commands)
     return parser
+
+
+def version_text() -> str:
+    """What ``kkl-bench --version`` prints: the fields of :func:`provenance` that every
+    cell records, so an installation can be compared with the cells of a board: the
+    package's version and git commit (``-dirty`` if modified) on the first line, then
+    the other packages, Python and the platform."""
+    recorded = provenance()
+    versions = dict(recorded["versions"])
+    commit = recorded["git_commit"] or "not a git checkout"
+    first = f"kkl-bench {versions.pop('kkl-bench', 'not installed')} (git {commit})"
+    packages = ", ".join(f"{name} {number}" for name, number in versions.items())
+    return f"{first}\n{packages}; Python {recorded['python']} on {recorded['platform']}"
+
+
+class _Version(argparse.Action):
+    """``--version``: prints :func:`version_text` and exits, computed only when asked."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, help: str) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(version_text())
+        parser.exit()
 
 
 def recorded_command(argv: Sequence[str], cwd: Path | None = None) -> str:
