@@ -8,6 +8,8 @@ import pandas as pd
 import pytest
 
 from kkl_bench.analysis.document import HTML, MARKDOWN, Code, Figure, Section, Table, Text
+from kkl_bench.estimator import Estimator
+from kkl_bench.registry import estimators
 from kkl_bench.report import html, markdown
 from kkl_bench.report import publish as publishing
 
@@ -108,3 +110,38 @@ def test_no_ratio_is_drawn_against_a_diverged_ukf_and_rows_that_run_nowhere_are_
     assert names == ["ekf", "ukf"] and cells == [("duffing", "zero"), ("duffing", "square")]
     assert math.isnan(ratios[0, 0]) and ratios[0, 1] == pytest.approx(3.0)
     assert math.isinf(ratios[1, 0]) and ratios[1, 1] == 1.0  # the UKF's own cell: "div."
+
+
+class Raising(Estimator):
+    """A row whose fit always raises: its cells are errors."""
+
+    def fit(self, context):
+        raise RuntimeError("this row always fails")
+
+    def estimate(self, t, y, u):
+        raise AssertionError("never fitted")
+
+
+def test_the_board_says_why_a_row_is_unsupported_and_counts_only_errors_as_failed(tmp_path):
+    """``ring_observer`` cannot run on Van der Pol (no ring), ``raising`` fails: the paper
+    section gives the first's reason and the reading guide names only the second as
+    failed, and neither among the rows that ran fewer seeds."""
+    from kkl_bench.cli import main
+
+    results = tmp_path / "results"
+    estimators.register("raising")(Raising)
+    try:
+        arguments = ["run", "--estimator", "ekf", "ring_observer", "raising", "--system", "vdp",
+                     "--regime", "zero", "--results", str(results)]  # fmt: skip
+        assert main(arguments) == 1  # the failed cell
+    finally:  # publishing must not need the plugin
+        del estimators._loaded["raising"]
+    assert main(["publish", "--results", str(results), "--out", str(tmp_path / "board")]) == 0
+    readme = (tmp_path / "board" / "README.md").read_text()
+    paper, _, _ = readme.partition("## Our RMSE over the paper's")
+    assert (
+        "- `ring_observer` on Van der Pol: needs a system on a ring (System.ring: its sites "
+        "and which are measured); vdp declares none" in paper
+    )
+    assert "those rows show only the seeds that did not: `raising`: seed 0 failed." in paper
+    assert "`ring_observer`: seed" not in readme and "ran fewer seeds" not in readme

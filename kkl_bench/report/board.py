@@ -19,7 +19,13 @@ from kkl_bench.analysis.leaderboard import (
     measured_cost_table,
     paper_comparison,
 )
-from kkl_bench.analysis.summary import PAPER_PREFIX, relative_summary, summary_table
+from kkl_bench.analysis.summary import (
+    PAPER_PREFIX,
+    SYSTEM_TITLES,
+    relative_summary,
+    summary_table,
+    unsupported_reasons,
+)
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators
 
@@ -148,7 +154,7 @@ def reading_guide(board: Board) -> Section:
     seeds = int(summary["n_seeds"].max())
     fewer = summary[summary["estimator"].isin(set(ours) - set(single))]
     fewer = fewer.groupby("estimator")["n_seeds"].max()
-    fewer = fewer[fewer < seeds]
+    fewer = fewer[(fewer > 0) & (fewer < seeds)]  # a row that ran none is unsupported or failed
     short = (
         " Rows that depend on the seed but ran fewer seeds ("
         + ", ".join(f"`{name}`: {int(count)}" for name, count in fewer.items())
@@ -247,6 +253,7 @@ def paper_sections(board: Board) -> list[Section]:
             [
                 *([Text(f"**In one line.** {answer}")] if answer else []),
                 *grid_tables(summary, name="board-paper"),
+                *unsupported_blocks(board.results),
                 long_table(summary, "results"),
             ],
             tab=TAB,
@@ -278,6 +285,24 @@ def paper_sections(board: Board) -> list[Section]:
         )
     sections += [cost_section(board), trajectory_section(board)]
     return sections
+
+
+def unsupported_blocks(cells: pd.DataFrame) -> list[Text]:
+    """Why each row of ``cells`` (one track's) reads `unsupported` where it does, one item
+    per row and reason (:func:`unsupported_reasons`); nothing where no cell is."""
+    reasons = unsupported_reasons(cells)
+    if not reasons:
+        return []
+    items = "\n".join(
+        f"- `{row}` on {', '.join(SYSTEM_TITLES.get(s, s) for s in systems)}: {reason}"
+        for row, systems, reason in reasons
+    )
+    return [
+        Text(
+            "`unsupported`: the estimator cannot be fitted for the task, for the reason it "
+            f"gives (no number is scored):\n\n{items}"
+        )
+    ]
 
 
 LIMIT_TEXT = """`particle_filter` estimates the posterior mean under the exact model (protocol

@@ -154,7 +154,7 @@ def dirty_sentence(dirty: pd.DataFrame, total: int) -> str:
 
 def failed_seeds(results: pd.DataFrame) -> dict[str, list[int]]:
     """Row -> the seeds of ``results`` with a cell whose estimator failed (status error)."""
-    failed = results[results["status"] != "ok"]
+    failed = results[results["status"] == "error"]
     return {name: sorted(set(cells["seed"])) for name, cells in failed.groupby("estimator")}
 
 

@@ -17,9 +17,9 @@ from kkl_bench.analysis.comparisons import (
 from kkl_bench.analysis.document import Figure, Section, Table, Text
 from kkl_bench.analysis.leaderboard import grid_tables, track_summary_table
 from kkl_bench.analysis.scaling import TRACK as SCALING_TRACK
-from kkl_bench.analysis.summary import SYSTEM_TITLES, condition, unsupported_reasons
+from kkl_bench.analysis.summary import SYSTEM_TITLES, condition
 from kkl_bench.protocol.metrics import SETTLING_THRESHOLD, SETTLING_WINDOW_S
-from kkl_bench.report.board import Board, long_table
+from kkl_bench.report.board import Board, long_table, unsupported_blocks
 from kkl_bench.suite.plants import true_plant
 from kkl_bench.suite.tracks import find_track
 
@@ -242,18 +242,7 @@ def _track(board: Board, name: str, summary: pd.DataFrame) -> Section:
     ):
         if said:
             blocks.append(Text(said))
-    reasons = unsupported_reasons(board.tables.cells[name])
-    if reasons:
-        blocks.append(
-            Text(
-                "`unsupported`: the estimator cannot be fitted for the task, for the reason "
-                "it gives (no number is scored):\n\n"
-                + "\n".join(
-                    f"- `{row}` on {', '.join(SYSTEM_TITLES.get(s, s) for s in systems)}: {reason}"
-                    for row, systems, reason in reasons
-                )
-            )
-        )
+    blocks += unsupported_blocks(board.tables.cells[name])
     calibrated = calibration_table(board.tables.cells[name], name)
     if calibrated is not None:
         blocks += [
