@@ -109,13 +109,19 @@ def test_a_rows_rmse_change_by_regime_keeps_the_regimes_apart():
     assert square["after / before"] == pytest.approx(0.25)
 
 
-def test_no_ratio_is_given_against_a_mean_that_a_diverged_trajectory_made_infinite():
+def test_a_cell_diverged_in_either_folder_is_left_out_of_both_means_and_counted():
     after = cells()
     before = after.assign(rmse_mean=after["rmse_mean"] * 2)
     before.loc[before["estimator"] == "ekf", "rmse_mean"] = np.inf
+    first = after.index[after["estimator"] == "curriculum_kkl"][0]
+    after.loc[first, "rmse_mean"] = np.inf  # seed 0 on zero diverged, after only
     change = trainings.rmse_change(before, after).set_index("Row")
-    assert np.isnan(change.loc["ekf", "after / before"])  # not after / inf = 0
-    assert change.loc["curriculum_kkl", "after / before"] == pytest.approx(0.5)
+    ekf, row = change.loc["ekf"], change.loc["curriculum_kkl"]
+    assert (ekf["Cells"], ekf["Diverged"]) == (1, 1)
+    assert np.isnan(ekf["RMSE before"]) and np.isnan(ekf["after / before"])  # not after / inf
+    assert (row["Cells"], row["Diverged"]) == (4, 1)
+    assert row["RMSE after"] == pytest.approx((0.3 + 1.1 + 1.3) / 3)  # seed 0 zero left out
+    assert row["after / before"] == pytest.approx(0.5)  # over the same three cells
 
 
 def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, capsys):

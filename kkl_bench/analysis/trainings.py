@@ -256,19 +256,28 @@ def converged_by_track(cells: pd.DataFrame) -> str:
 def rmse_change(before: pd.DataFrame, after: pd.DataFrame, by_regime: bool = False) -> pd.DataFrame:
     """Per row and system (and regime, ``by_regime``), the mean RMSE over the cells (task
     and seed) that both ``before`` and ``after`` hold, in each, and their ratio (after /
-    before; none where either mean is not finite, as a diverged trajectory leaves it); a
-    row or system one of them lacks is left out."""
+    before); a row or system one of them lacks is left out. A cell whose mean RMSE is not
+    finite in either (a diverged trajectory makes it ``inf``) is left out of both means, so
+    that they stay paired, and counted in ``Diverged``; where every cell is, there is no
+    mean and no ratio."""
     key = ["estimator", "task", "seed"]
     both = before[[*key, "system", "regime", "rmse_mean"]].merge(
         after[[*key, "rmse_mean"]], on=key, suffixes=(" before", " after")
+    )
+    finite = np.isfinite(both["rmse_mean before"]) & np.isfinite(both["rmse_mean after"])
+    both = both.assign(
+        diverged=~finite,
+        paired_before=both["rmse_mean before"].where(finite),
+        paired_after=both["rmse_mean after"].where(finite),
     )
     groups = ["estimator", "system", "regime"] if by_regime else ["estimator", "system"]
     table = (
         both.groupby(groups, sort=False)
         .agg(
             cells=("task", "size"),
-            before=("rmse_mean before", "mean"),
-            after=("rmse_mean after", "mean"),
+            diverged=("diverged", "sum"),
+            before=("paired_before", "mean"),
+            after=("paired_after", "mean"),
         )
         .reset_index()
     )
@@ -279,14 +288,14 @@ def rmse_change(before: pd.DataFrame, after: pd.DataFrame, by_regime: bool = Fal
             rank=table["regime"].map(order.index),
         )
         table = table.sort_values(["group", "rank"], kind="stable").drop(columns=["group", "rank"])
-    finite = np.isfinite(table["before"]) & np.isfinite(table["after"])
-    table["after / before"] = (table["after"] / table["before"]).where(finite)
+    table["after / before"] = table["after"] / table["before"]
     return table.rename(
         columns={
             "estimator": "Row",
             "system": "System",
             "regime": "Regime",
             "cells": "Cells",
+            "diverged": "Diverged",
             "before": "RMSE before",
             "after": "RMSE after",
         }

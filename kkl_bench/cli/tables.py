@@ -70,7 +70,8 @@ def add_parser(commands) -> None:
         "kept; then how many of the track's learned cells the board reads as converged. "
         "With --before, each row's mean RMSE per system (and regime, with --by-regime) "
         "against another results folder's, on the cells both hold (a refit's before and "
-        "after).",
+        "after); a cell with a diverged trajectory in either is left out of both means and "
+        "counted.",
     )
     add_reading_arguments(fits)
     fits.add_argument(
