@@ -255,12 +255,13 @@ def converged_by_track(cells: pd.DataFrame) -> str:
 
 def rmse_change(before: pd.DataFrame, after: pd.DataFrame, by_regime: bool = False) -> pd.DataFrame:
     """Per row and system (and regime, ``by_regime``), the mean RMSE over the cells (task
-    and seed) that both ``before`` and ``after`` hold, in each, and their ratio (after /
-    before); a row or system one of them lacks is left out. A cell whose mean RMSE is not
-    finite in either (a diverged trajectory makes it ``inf``) is left out of both means, so
-    that they stay paired, and counted in ``Diverged``; where every cell is, there is no
-    mean and no ratio."""
+    and seed) that both ``before`` and ``after`` scored (status ``ok``), in each, and their
+    ratio (after / before); a row or system one of them did not score is left out. A cell
+    whose mean RMSE is not finite in either (a diverged trajectory makes it ``inf``) is
+    left out of both means, so that they stay paired, and counted in ``Diverged``; where
+    every cell is, there is no mean and no ratio."""
     key = ["estimator", "task", "seed"]
+    before, after = (cells[cells["status"] == "ok"] for cells in (before, after))
     both = before[[*key, "system", "regime", "rmse_mean"]].merge(
         after[[*key, "rmse_mean"]], on=key, suffixes=(" before", " after")
     )

@@ -69,7 +69,7 @@ def add_parser(commands) -> None:
         "plateau, at the cap or diverged (protocol 6.5), and the median step whose state was "
         "kept; then how many of the track's learned cells the board reads as converged. "
         "With --before, each row's mean RMSE per system (and regime, with --by-regime) "
-        "against another results folder's, on the cells both hold (a refit's before and "
+        "against another results folder's, on the cells both scored (a refit's before and "
         "after); a cell with a diverged trajectory in either is left out of both means and "
         "counted.",
     )
