@@ -116,12 +116,11 @@ def test_a_cell_diverged_in_either_folder_is_left_out_of_both_means_and_counted(
     before.loc[before["estimator"] == "ekf", "rmse_mean"] = np.inf
     first = after.index[after["estimator"] == "curriculum_kkl"][0]
     after.loc[first, "rmse_mean"] = np.inf  # seed 0 on zero diverged, after only
-    unsupported = {"estimator": "ring_observer", "task": "duffing/zero@v1", "seed": 0}
-    unsupported |= {"system": "duffing", "regime": "zero", "rmse_mean": np.nan}
-    before, after = (  # a row that scores nothing in either folder is not compared
-        pd.concat([cells, pd.DataFrame([{**unsupported, "status": "unsupported"}])])
-        for cells in (before, after)
-    )
+    unsupported = pd.DataFrame(  # a row that scores nothing in either folder is not compared
+        [{"estimator": "ring_observer", "system": "duffing", "task": "duffing/zero@v1",
+          "regime": "zero", "seed": 0, "rmse_mean": np.nan, "status": "unsupported"}]
+    )  # fmt: skip
+    before, after = (pd.concat([folder, unsupported]) for folder in (before, after))
     change = trainings.rmse_change(before, after).set_index("Row")
     assert "ring_observer" not in change.index
     ekf, row = change.loc["ekf"], change.loc["curriculum_kkl"]
