@@ -145,3 +145,9 @@ def test_the_board_says_why_a_row_is_unsupported_and_counts_only_errors_as_faile
     )
     assert "those rows show only the seeds that did not: `raising`: seed 0 failed." in paper
     assert "`ring_observer`: seed" not in readme and "ran fewer seeds" not in readme
+
+
+def test_a_markdown_list_becomes_an_html_list_and_other_blocks_paragraphs():
+    assert html.paragraphs("Why:\n\n- `a` on Duffing\n- b\n\n- c and\nmore") == (
+        "<p>Why:</p>\n<ul><li><code>a</code> on Duffing</li><li>b</li></ul>\n<p>- c and\nmore</p>"
+    )

@@ -29,9 +29,17 @@ def inline(markdown: str) -> str:
 
 
 def paragraphs(markdown: str) -> str:
-    return "\n".join(
-        f"<p>{inline(html.escape(part))}</p>" for part in markdown.split("\n\n") if part.strip()
-    )
+    """Markdown text blocks (separated by blank lines) as HTML: a block whose every line
+    starts with ``- `` as a list, any other as a paragraph."""
+    return "\n".join(_block(part) for part in markdown.split("\n\n") if part.strip())
+
+
+def _block(part: str) -> str:
+    lines = part.strip().splitlines()
+    if all(line.startswith("- ") for line in lines):
+        items = "".join(f"<li>{inline(html.escape(line[2:]))}</li>" for line in lines)
+        return f"<ul>{items}</ul>"
+    return f"<p>{inline(html.escape(part))}</p>"
 
 
 def shade(ratio: float) -> str:
