@@ -183,3 +183,54 @@ def test_a_job_run_in_this_process_is_limited_to_its_threads():
     before = torch.get_num_threads()
     seen = list(executors.execute(lambda: torch.get_num_threads(), [()], jobs=1, threads=1))
     assert seen == [1] and torch.get_num_threads() == before
+
+
+def test_a_job_waits_while_a_running_job_holds_a_name_no_finished_job_has_held():
+    schedule = executors.Schedule(
+        [frozenset({"P1"}), frozenset({"P1"}), frozenset(), frozenset({"P1"})]
+    )
+    assert schedule.start() == 0  # trains P1
+    assert schedule.start() == 2  # job 1 would wait for job 0's P1: the next one starts
+    assert schedule.start() is None  # jobs 1 and 3 both need P1
+    schedule.finish(2)
+    assert schedule.start() is None
+    schedule.finish(0)  # P1 is saved: the jobs that load it may run together
+    assert (schedule.start(), schedule.start(), schedule.start()) == (1, 3, None)
+
+
+def started(folder, name):
+    return (Path(folder) / f"{name}.started").exists()
+
+
+def claim_job(folder, name):
+    """Records when it starts and ends; job ``a`` ends once another job has started (or
+    after a minute), so that a job started beside it is seen to be."""
+    Path(folder, f"{name}.started").write_text(str(time.monotonic_ns()))
+    if name == "a":
+        deadline = time.monotonic() + 60
+        while not (started(folder, "b") or started(folder, "c")) and time.monotonic() < deadline:
+            time.sleep(0.01)
+    Path(folder, f"{name}.ended").write_text(str(time.monotonic_ns()))
+    return name
+
+
+@pytest.mark.parametrize("executor", ["loky", pytest.param("dask", marks=pytest.mark.slow)])
+def test_workers_run_a_job_that_shares_no_untrained_model_with_a_running_one(tmp_path, executor):
+    """Jobs ``a`` and ``b`` claim one model, ``c`` none: with two workers ``c`` runs beside
+    ``a``, and ``b`` starts only after ``a`` ended (given in the order a, b, c, first come
+    first served would start ``b`` beside ``a``)."""
+    claims = [{"model"}, {"model"}, set()]
+    arguments = [(str(tmp_path), name) for name in "abc"]
+    finished = list(execute(claim_job, arguments, jobs=2, executor=executor, claims=claims))
+    assert sorted(finished) == ["a", "b", "c"]
+
+    def time_of(name, event):
+        return int((tmp_path / f"{name}.{event}").read_text())
+
+    assert time_of("b", "started") > time_of("a", "ended")
+    assert time_of("c", "started") < time_of("a", "ended")
+
+
+def test_claims_are_one_per_job():
+    with pytest.raises(ValueError, match="claims must be one per job: 1 for 2 jobs"):
+        list(execute(print, [(1,), (2,)], jobs=2, claims=[{"model"}]))

@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import pandas as pd
 import pytest
@@ -79,10 +80,50 @@ def test_a_model_several_jobs_share_is_counted_once():
     zero, square = Task("duffing", "zero"), Task("duffing", "square")
     assert records.seconds(Job("a", "duffing", (zero,), 0)) == (110.0, 0.0)
     assert records.seconds(Job("b", "duffing", (zero,), 0)) == (20.0, 0.0)
+    phase1 = ("duffing", 0, "phase1", 100.0)  # what the jobs that share it name it
+    assert records.models(Job("a", "duffing", (zero,), 0)) == {
+        phase1,
+        ("duffing", 0, "phase2", 10.0),
+    }
+    assert records.models(Job("b", "duffing", (zero,), 0)) == {
+        phase1,
+        ("duffing", 0, "phase2", 20.0),
+    }
     resumed = regenerate._CostRecords(frame.assign(system="duffing"))
     resumed.made([("a", "duffing/zero@v1", 0)])  # a's cell is done: its models are trained
     assert resumed.seconds(Job("b", "duffing", (zero,), 0)) == (20.0, 0.0)
     assert resumed.seconds(Job("a", "duffing", (square,), 0)) == (0.0, 0.0)  # a only scores
+    assert resumed.models(Job("b", "duffing", (zero,), 0)) == {("duffing", 0, "phase2", 20.0)}
+    assert resumed.models(Job("a", "duffing", (square,), 0)) == frozenset()
+
+
+def test_a_fit_that_trained_nothing_shares_no_model():
+    frame = pd.DataFrame(
+        [{"estimator": row, "task": "duffing/zero@v1", "seed": 0} for row in ("ekf", "ukf")]
+    ).assign(estimate_us_per_step=float("nan"), fit_time_s=0.0, fit_report=None)
+    records = regenerate._CostRecords(frame)
+    zero = Task("duffing", "zero")
+    assert records.models(Job("ekf", "duffing", (zero,), 0)) == frozenset()
+
+
+def test_a_regeneration_holds_back_the_jobs_that_share_a_model_not_trained_yet(
+    published, tmp_path, monkeypatch
+):
+    planned = regenerate.plan(load_results(published), PROFILE, tmp_path, tmp_path / "cache")
+    shared = ("duffing", 0, "fit", 1.0)
+    planned = regenerate.Plan(
+        [replace(job, models=frozenset({shared})) for job in planned.jobs], 5, 0
+    )
+    given, execute = [], regenerate.execute
+
+    def recording(function, arguments, *args, claims=None):
+        given.append(claims)
+        return execute(function, arguments, *args, claims=claims)
+
+    monkeypatch.setattr(regenerate, "execute", recording)
+    regenerate.run(planned, tmp_path)
+    assert given == [[{shared}, {shared}]]
+    assert len(load_results(tmp_path)) == 5
 
 
 def test_a_job_that_only_scores_is_counted_as_such_and_keeps_its_scoring_estimate():

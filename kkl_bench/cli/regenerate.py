@@ -50,7 +50,9 @@ def add_parser(commands) -> None:
         "--dry-run", action="store_true", help="print the plan and its estimate, run nothing"
     )
     add_cache_argument(parser)
-    add_jobs_argument(parser, "jobs (fits, or scoring only)")
+    add_jobs_argument(
+        parser, "jobs (fits, or scoring only; two that need one model not trained yet never)"
+    )
     parser.add_argument(
         "--device",
         choices=DEVICES,

@@ -77,6 +77,9 @@ class PlannedJob:
     its cells keeps that attempt's key, and with it its meter."""
     earlier_cells: int = 0
     """The cells of its fit that its killed attempts wrote."""
+    models: frozenset[tuple] = frozenset()
+    """The models it trains or loads that are not trained yet (:meth:`_CostRecords.models`):
+    it does not run beside another job that needs one of them before either has finished."""
 
     @property
     def estimate_s(self) -> float:
@@ -344,6 +347,7 @@ def plan(
                     earlier_cells=len(fit) - len(tasks)
                     if attempts and key not in recorded["jobs"]
                     else 0,
+                    models=known.models(job),
                 )
             )
     return Plan(jobs, len(wanted), done, rates)
@@ -368,6 +372,7 @@ class _CostRecords:
             (row.estimator, row.task, row.seed): row for row in source.itertuples(index=False)
         }
         self.trained: set[tuple] = set()
+        self.made_models: set[tuple] = set()
 
     def made(self, cells) -> None:
         """Count as trained the models of the cells ``(row, task id, seed)`` the target
@@ -375,7 +380,22 @@ class _CostRecords:
         for key in cells:
             cell = self.cells[key]
             for phase, seconds in phase_seconds(cell).items():
-                self.trained.add((cell.system, cell.seed, phase, seconds))
+                self.made_models.add((cell.system, cell.seed, phase, seconds))
+        self.trained |= self.made_models
+
+    def models(self, job: Job) -> frozenset[tuple]:
+        """The models ``job`` trains or loads that the target folder has no cell of yet,
+        each named ``(system, seed, phase, seconds trained)`` as :meth:`seconds` counts
+        them: jobs that share one train it once, so they should not run at once
+        (:class:`~kkl_bench.support.executors.Schedule`). A phase that trained nothing is
+        not one (every filter's)."""
+        cell = self.cells[(job.estimator, job.tasks[0].id, job.seed)]
+        return frozenset(
+            model
+            for phase, seconds in phase_seconds(cell).items()
+            if seconds > 0
+            and (model := (job.system, job.seed, phase, seconds)) not in self.made_models
+        )
 
     def seconds(self, job: Job) -> tuple[float, float]:
         """The estimated wall time of ``job``: the seconds its models train and the seconds
@@ -450,10 +470,15 @@ def run(
     """Run ``planned``'s jobs (``jobs`` at once, through
     :func:`~kkl_bench.support.executors.execute`), adding each finished job's processor
     and wall time, with its killed attempts', to the ledger in ``into`` as it ends;
-    ``progress(planned_job, outcome)`` after each. Returns the ledger."""
+    ``progress(planned_job, outcome)`` after each. Jobs that share a model not trained
+    yet (:attr:`PlannedJob.models`) do not run at once: the first to start trains it while
+    the workers take other jobs, instead of one waiting on its lock. Returns the ledger."""
     by_job = {planned_job.job: planned_job for planned_job in planned.jobs}
     arguments = [(p.spec, p.job, p.key) for p in planned.jobs]
-    for outcome, times, device in execute(_timed_job, arguments, jobs, executor, scheduler):
+    claims = [planned_job.models for planned_job in planned.jobs]
+    for outcome, times, device in execute(
+        _timed_job, arguments, jobs, executor, scheduler, claims=claims
+    ):
         planned_job = by_job[outcome.job]
         failed = sum(cell.status == "error" for cell in outcome.scored)
         earlier = interrupted_times(into, planned_job.key)
