@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from types import SimpleNamespace
 
 import pandas as pd
 import pytest
@@ -18,7 +19,7 @@ from kkl_bench.cli.run import following
 from kkl_bench.report.provenance import regeneration_sentence
 from kkl_bench.run import harness, ledger, regenerate
 from kkl_bench.run.harness import Job
-from kkl_bench.run.results import load_results
+from kkl_bench.run.results import load_results, trained_models
 from kkl_bench.suite.task import Task, get_profile
 from tests.git_repo import commit_all, git
 
@@ -61,7 +62,7 @@ def test_the_plan_covers_the_source_cells_and_counts_their_recorded_cost(publish
 
 
 def test_a_model_several_jobs_share_is_counted_once():
-    spent = {"phase1": {"seconds": 100.0}, "phase2": {"seconds": 10.0}}
+    spent = {"phase1": {"steps": 9, "seconds": 100.0}, "phase2": {"steps": 9, "seconds": 10.0}}
     cells = [
         {
             "estimator": row,
@@ -72,10 +73,12 @@ def test_a_model_several_jobs_share_is_counted_once():
         for row, regime, report in (
             ("a", "zero", spent),
             ("a", "square", spent),
-            ("b", "zero", {**spent, "phase2": {"seconds": 20.0}}),
+            ("b", "zero", {**spent, "phase2": {"steps": 9, "seconds": 20.0}}),
         )
     ]
-    frame = pd.DataFrame(cells).assign(estimate_us_per_step=float("nan"), fit_time_s=1.0)
+    frame = pd.DataFrame(cells).assign(
+        system="duffing", estimate_us_per_step=float("nan"), fit_time_s=1.0
+    )
     records = regenerate._CostRecords(frame)
     zero, square = Task("duffing", "zero"), Task("duffing", "square")
     assert records.seconds(Job("a", "duffing", (zero,), 0)) == (110.0, 0.0)
@@ -89,7 +92,7 @@ def test_a_model_several_jobs_share_is_counted_once():
         phase1,
         ("duffing", 0, "phase2", 20.0),
     }
-    resumed = regenerate._CostRecords(frame.assign(system="duffing"))
+    resumed = regenerate._CostRecords(frame)
     resumed.made([("a", "duffing/zero@v1", 0)])  # a's cell is done: its models are trained
     assert resumed.seconds(Job("b", "duffing", (zero,), 0)) == (20.0, 0.0)
     assert resumed.seconds(Job("a", "duffing", (square,), 0)) == (0.0, 0.0)  # a only scores
@@ -97,13 +100,16 @@ def test_a_model_several_jobs_share_is_counted_once():
     assert resumed.models(Job("a", "duffing", (square,), 0)) == frozenset()
 
 
-def test_a_fit_that_trained_nothing_shares_no_model():
-    frame = pd.DataFrame(
-        [{"estimator": row, "task": "duffing/zero@v1", "seed": 0} for row in ("ekf", "ukf")]
-    ).assign(estimate_us_per_step=float("nan"), fit_time_s=0.0, fit_report=None)
-    records = regenerate._CostRecords(frame)
-    zero = Task("duffing", "zero")
-    assert records.models(Job("ekf", "duffing", (zero,), 0)) == frozenset()
+def test_a_model_is_named_by_the_phases_that_trained_at_their_recorded_seconds():
+    spent = {
+        "phase1": {"steps": 500, "seconds": 9.0, "processor_seconds": 8.5, "device": "cpu"},
+        "phase2": {"steps": 300, "seconds": 4.0, "device": "cuda"},  # wall time off the CPU
+        "adaptation": {"steps": 0, "seconds": 0.2},  # took no step: loaded, or none asked
+    }
+    learned = SimpleNamespace(system="vdp", seed=1, fit_report={"spent": spent})
+    assert trained_models(learned) == {("vdp", 1, "phase1", 8.5), ("vdp", 1, "phase2", 4.0)}
+    a_filter = SimpleNamespace(system="vdp", seed=1, fit_report={}, fit_time_s=0.02)
+    assert trained_models(a_filter) == frozenset()  # its fit trains nothing to share
 
 
 def test_a_regeneration_holds_back_the_jobs_that_share_a_model_not_trained_yet(

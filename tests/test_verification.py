@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from kkl_bench.cli import main
+from kkl_bench.run import verification
 from kkl_bench.run.results import read_cell
 from kkl_bench.run.verification import (
     DRIFTED,
@@ -115,6 +116,21 @@ def test_a_sample_is_verified_in_parallel_and_the_board_says_what_it_found(resul
     assert main(["publish", "--results", str(results), "--out", str(board)]) == 0
     reproduce = (board / "README.md").read_text().split("## Reproduce")[1]
     assert sentence in reproduce and f"| `{CELL}.json` | identical " in reproduce
+
+
+def test_cells_that_need_one_model_not_trained_yet_are_not_recomputed_at_once(
+    results, capsys, monkeypatch
+):
+    given, execute = [], verification.execute
+
+    def recording(function, arguments, jobs, claims=None):
+        given.append(claims)
+        return execute(function, arguments, jobs, claims=claims)
+
+    monkeypatch.setattr(verification, "execute", recording)
+    monkeypatch.setattr(verification, "trained_models", lambda cell: {(cell.system, "model")})
+    assert verify(results, "--sample", "5", "--jobs", "2")[0] == 0
+    assert given == [[{("vdp", "model")}] * 2]
 
 
 def test_an_interrupted_run_goes_on_where_it_stopped(results, capsys):

@@ -48,7 +48,7 @@ from kkl_bench.run.ledger import (
     record_job,
     running_seconds,
 )
-from kkl_bench.run.results import recorded_seconds
+from kkl_bench.run.results import phase_seconds, trained_models
 from kkl_bench.suite.task import Profile, Task
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.devices import resolve as resolve_device
@@ -365,7 +365,7 @@ def _fit_of(spec: RunSpec, job: Job) -> list[Task]:
 
 class _CostRecords:
     """What the source cells recorded of their cost: per job, the seconds its models
-    trained (:func:`phase_seconds`) and the seconds its cells were scored in."""
+    trained (:func:`~kkl_bench.run.results.phase_seconds`) and the seconds its cells were scored in."""
 
     def __init__(self, source: pd.DataFrame) -> None:
         self.cells = {
@@ -385,16 +385,11 @@ class _CostRecords:
 
     def models(self, job: Job) -> frozenset[tuple]:
         """The models ``job`` trains or loads that the target folder has no cell of yet,
-        each named ``(system, seed, phase, seconds trained)`` as :meth:`seconds` counts
-        them: jobs that share one train it once, so they should not run at once
-        (:class:`~kkl_bench.support.executors.Schedule`). A phase that trained nothing is
-        not one (every filter's)."""
-        cell = self.cells[(job.estimator, job.tasks[0].id, job.seed)]
-        return frozenset(
-            model
-            for phase, seconds in phase_seconds(cell).items()
-            if seconds > 0
-            and (model := (job.system, job.seed, phase, seconds)) not in self.made_models
+        (:func:`~kkl_bench.run.results.trained_models`, named as :meth:`seconds` counts
+        them): jobs that share one train it once, so they should not run at once
+        (:class:`~kkl_bench.support.executors.Schedule`)."""
+        return trained_models(self.cells[(job.estimator, job.tasks[0].id, job.seed)]) - (
+            self.made_models
         )
 
     def seconds(self, job: Job) -> tuple[float, float]:
@@ -415,27 +410,6 @@ class _CostRecords:
             _scoring_seconds(cell, task) for cell, task in zip(cells, job.tasks, strict=True)
         )
         return fit, scoring
-
-
-def phase_seconds(cell) -> dict[str, float]:
-    """The time each phase of the fit behind ``cell`` trained for (``fit_report``'s
-    ``spent``, stored with the models: :func:`~kkl_bench.run.results.recorded_seconds`); a fit
-    that trained nothing, its fit time."""
-    report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
-    spent = report.get("spent") or {}
-    phases = {
-        phase: _seconds_or_zero(recorded_seconds(record))
-        for phase, record in spent.items()
-        if isinstance(record, dict)
-    }
-    if any(phases.values()):
-        return phases
-    return {"fit": _seconds_or_zero(cell.fit_time_s)}
-
-
-def _seconds_or_zero(value: object) -> float:
-    """``value`` if a finite number of seconds, else 0 (nothing recorded)."""
-    return float(value) if isinstance(value, float | int) and math.isfinite(value) else 0.0
 
 
 def _scoring_seconds(cell, task) -> float:

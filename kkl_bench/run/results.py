@@ -346,6 +346,44 @@ def recorded_seconds(phase: dict) -> float:
     return phase.get("seconds", math.nan)
 
 
+def phase_seconds(cell) -> dict[str, float]:
+    """The time each phase of the fit behind ``cell`` trained for (``fit_report``'s
+    ``spent``, stored with the models: :func:`recorded_seconds`); a fit
+    that trained nothing, its fit time."""
+    report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
+    spent = report.get("spent") or {}
+    phases = {
+        phase: _seconds_or_zero(recorded_seconds(record))
+        for phase, record in spent.items()
+        if isinstance(record, dict)
+    }
+    if any(phases.values()):
+        return phases
+    return {"fit": _seconds_or_zero(cell.fit_time_s)}
+
+
+def _seconds_or_zero(value: object) -> float:
+    """``value`` if a finite number of seconds, else 0 (nothing recorded)."""
+    return float(value) if isinstance(value, float | int) and math.isfinite(value) else 0.0
+
+
+def trained_models(cell) -> frozenset[tuple]:
+    """The trained models behind ``cell``, each named ``(system, seed, phase, seconds it
+    trained)`` from its fit report's ``spent`` (the phases that took steps, at their
+    :func:`recorded_seconds`): a model several cells share (a Phase-1 model the KKL rows
+    load, one model scored on several tracks) is stored with its training record, so it
+    reads the same name in each. A fit that trains nothing (a filter's) names none."""
+    report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
+    spent = report.get("spent") or {}
+    return frozenset(
+        (cell.system, cell.seed, phase, seconds)
+        for phase, record in spent.items()
+        if isinstance(record, dict)
+        and record.get("steps", 0)
+        and math.isfinite(seconds := recorded_seconds(record))
+    )
+
+
 def mean_and_std(values: list[float]) -> tuple[float, float]:
     """Mean and population standard deviation; ``(inf, inf)`` if any value is not finite,
     ``(nan, nan)`` for no values."""

@@ -27,7 +27,7 @@ from filelock import FileLock
 
 from kkl_bench.registry import did_you_mean
 from kkl_bench.run import harness
-from kkl_bench.run.results import CellResult, cell_path, estimate_path, read_cell
+from kkl_bench.run.results import CellResult, cell_path, estimate_path, read_cell, trained_models
 from kkl_bench.run.spec import RunSpec
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support.executors import execute
@@ -267,7 +267,8 @@ def verify(
 ) -> pd.DataFrame:
     """Recompute each cell record of ``paths`` (under ``results_dir``) in the empty folder
     ``work`` (results and model cache, :func:`recompute`; ``jobs`` cells at a time, in
-    worker processes that share the cache), append each verdict to ``out_file`` as soon as
+    worker processes that share the cache, never two that need one model not trained yet:
+    :func:`~kkl_bench.run.results.trained_models`), append each verdict to ``out_file`` as soon as
     it is known and return them all.
 
     ``selection`` says how the cells were chosen (recorded with each verdict). With
@@ -279,9 +280,13 @@ def verify(
     run = run or datetime.now(UTC).isoformat(timespec="seconds")
     commit = provenance()["git_commit"]
     rows = []
+    paths = list(paths)
     jobs_arguments = [(path, work, command) for path in paths]
+    # two cells of one model (or of KKL rows sharing a Phase-1 model) are not recomputed
+    # at once: one would wait on the other's training
+    claims = [trained_models(read_cell(path)) for path in paths]
     for path, published, recomputed, new_path, seconds in execute(
-        _recompute_timed, jobs_arguments, jobs
+        _recompute_timed, jobs_arguments, jobs, claims=claims
     ):
         verdict, difference = verdict_of(published, recomputed, tolerance)
         replaced = replace_drifted and verdict == DRIFTED
