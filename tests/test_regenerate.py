@@ -3,10 +3,12 @@ interrupted and resumed that makes each cell once."""
 
 import io
 import json
+import multiprocessing
 import subprocess
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 
 import pandas as pd
@@ -314,6 +316,24 @@ def _metered_child(folder, key):
     )
     assert child.stdout.readline() == "spent\n"
     return child
+
+
+def _record_jobs(folder, writer, count):
+    """``count`` finished jobs of one regeneration, recorded in the ledger of ``folder``."""
+    for index in range(count):
+        times = {"seconds": 1.0, "wall_seconds": 1.0}
+        ledger.record_job(Path(folder), f"job {writer}-{index}", times, 1.0, 1, 0)
+
+
+def test_regenerations_into_one_folder_at_once_lose_none_of_each_other_s_jobs(tmp_path):
+    context = multiprocessing.get_context("spawn")
+    writers = [context.Process(target=_record_jobs, args=(tmp_path, w, 40)) for w in range(4)]
+    for writer in writers:
+        writer.start()
+    for writer in writers:
+        writer.join(timeout=120)
+        assert writer.exitcode == 0
+    assert len(ledger.read_ledger(tmp_path)["jobs"]) == 4 * 40
 
 
 def test_a_killed_job_s_meter_counts_once_and_a_live_one_is_left(tmp_path):

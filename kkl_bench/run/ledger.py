@@ -62,19 +62,37 @@ def record_job(
     ``wall_seconds``, its estimate, the cells it made and those that failed, the device its
     torch estimators were given) to the ledger in ``into``, written atomically. A job run
     again (its failed cells retried) adds its times to those before, and the cells it made
-    to those it had made without failing."""
-    ledger = read_ledger(into)
-    previous = ledger["jobs"].get(key, {})
-    ledger["jobs"][key] = {
-        **{name: previous.get(name, 0.0) + value for name, value in times.items()},
-        "estimate_s": estimate_s,
-        "cells": previous.get("cells", 0) - previous.get("failed", 0) + cells,
-        "failed": failed,
-        "device": device,
-        "git_commit": provenance()["git_commit"],
-        "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-    _write_atomically(Path(into) / LEDGER_FILE, ledger)
+    to those it had made without failing. The ledger is read and written under a lock, so
+    regenerations into one folder at once (two invocations on disjoint rows or systems,
+    or machines sharing the folder) lose none of each other's jobs."""
+    commit = provenance()["git_commit"]
+    with _ledger_lock(into):
+        ledger = read_ledger(into)
+        previous = ledger["jobs"].get(key, {})
+        ledger["jobs"][key] = {
+            **{name: previous.get(name, 0.0) + value for name, value in times.items()},
+            "estimate_s": estimate_s,
+            "cells": previous.get("cells", 0) - previous.get("failed", 0) + cells,
+            "failed": failed,
+            "device": device,
+            "git_commit": commit,
+            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        _write_atomically(Path(into) / LEDGER_FILE, ledger)
+
+
+def _ledger_lock(folder: Path) -> FileLock:
+    """The lock of ``folder``'s ledger: a file beside the meters, ignored by git like
+    their locks."""
+    _prepare_meter_folder(folder)
+    return FileLock(Path(folder) / METER_FOLDER / "ledger.lock")
+
+
+def _prepare_meter_folder(folder: Path) -> None:
+    """Create ``folder``'s meter folder, with the ``.gitignore`` that keeps its locks out
+    of git."""
+    (Path(folder) / METER_FOLDER).mkdir(parents=True, exist_ok=True)
+    (Path(folder) / METER_FOLDER / ".gitignore").write_text("*.lock\n")
 
 
 def _write_atomically(path: Path, record: dict[str, Any]) -> None:
@@ -107,8 +125,8 @@ def metered(
     start_cpu, start = time.process_time(), time.perf_counter()
     attempt = f"{socket.gethostname()}-{os.getpid()}-{time.time_ns()}"
     path = _meter_folder(folder, key) / f"{attempt}.json"
+    _prepare_meter_folder(folder)
     path.parent.mkdir(parents=True, exist_ok=True)
-    (Path(folder) / METER_FOLDER / ".gitignore").write_text("*.lock\n")
     lock = FileLock(path.with_suffix(".lock"))
     stopped = threading.Event()
 
