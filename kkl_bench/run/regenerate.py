@@ -365,7 +365,8 @@ def _fit_of(spec: RunSpec, job: Job) -> list[Task]:
 
 class _CostRecords:
     """What the source cells recorded of their cost: per job, the seconds its models
-    trained (:func:`~kkl_bench.run.results.phase_seconds`) and the seconds its cells were scored in."""
+    trained (:func:`~kkl_bench.run.results.phase_seconds`) and the seconds its cells were
+    scored in."""
 
     def __init__(self, source: pd.DataFrame) -> None:
         self.cells = {
@@ -384,10 +385,9 @@ class _CostRecords:
         self.trained |= self.made_models
 
     def models(self, job: Job) -> frozenset[tuple]:
-        """The models ``job`` trains or loads that the target folder has no cell of yet,
-        (:func:`~kkl_bench.run.results.trained_models`, named as :meth:`seconds` counts
-        them): jobs that share one train it once, so they should not run at once
-        (:class:`~kkl_bench.support.executors.Schedule`)."""
+        """The models ``job`` trains or loads (:func:`~kkl_bench.run.results.trained_models`)
+        that no cell in the target folder was made from: the jobs that share one train it
+        once, so they should not run at once (:class:`~kkl_bench.support.executors.Schedule`)."""
         return trained_models(self.cells[(job.estimator, job.tasks[0].id, job.seed)]) - (
             self.made_models
         )

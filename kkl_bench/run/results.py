@@ -348,8 +348,8 @@ def recorded_seconds(phase: dict) -> float:
 
 def phase_seconds(cell) -> dict[str, float]:
     """The time each phase of the fit behind ``cell`` trained for (``fit_report``'s
-    ``spent``, stored with the models: :func:`recorded_seconds`); a fit
-    that trained nothing, its fit time."""
+    ``spent``, stored with the models: :func:`recorded_seconds`); a fit that trained
+    nothing, its fit time."""
     report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
     spent = report.get("spent") or {}
     phases = {

@@ -267,9 +267,9 @@ def verify(
 ) -> pd.DataFrame:
     """Recompute each cell record of ``paths`` (under ``results_dir``) in the empty folder
     ``work`` (results and model cache, :func:`recompute`; ``jobs`` cells at a time, in
-    worker processes that share the cache, never two that need one model not trained yet:
-    :func:`~kkl_bench.run.results.trained_models`), append each verdict to ``out_file`` as soon as
-    it is known and return them all.
+    worker processes that share the cache, never two that need one model not trained
+    yet: :func:`~kkl_bench.run.results.trained_models`), append each verdict to
+    ``out_file`` as soon as it is known and return them all.
 
     ``selection`` says how the cells were chosen (recorded with each verdict). With
     ``replace_drifted`` a drifted cell's record is replaced by the recomputed one.
