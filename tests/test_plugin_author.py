@@ -88,13 +88,17 @@ def test_a_plugin_row_reaches_a_copy_of_the_board_without_harming_it(installed, 
 
     board = tmp_path / "board"
     shutil.copytree(BOARD, board)
+
     # The copy as this machine publishes it before the plugin's row: a figure whose inputs'
     # digest the code has changed since the board was published is drawn again, and its
     # bytes repeat on one machine only (another's differed in the sixth decimal of a few
     # path coordinates), which is not the plugin's doing.
-    unchanged = kkl_bench(
-        installed, "publish", "--results", "board/results", "--out", "board", cwd=tmp_path
-    )
+    def publish() -> subprocess.CompletedProcess:
+        return kkl_bench(
+            installed, "publish", "--results", "board/results", "--out", "board", cwd=tmp_path
+        )
+
+    unchanged = publish()
     assert unchanged.returncode == 0, unchanged.stderr
     before = snapshot(board)
     ran = kkl_bench(
@@ -112,9 +116,7 @@ def test_a_plugin_row_reaches_a_copy_of_the_board_without_harming_it(installed, 
     assert mine.sum() == 4 and (costs.loc[mine, "reference_us_per_trajectory_step"] > 0).all()
     assert costs[~mine].reset_index(drop=True).equals(committed)  # every other row as it was
 
-    published = kkl_bench(
-        installed, "publish", "--results", "board/results", "--out", "board", cwd=tmp_path
-    )
+    published = publish()
     assert published.returncode == 0, published.stderr
     after = snapshot(board)
     assert set(after) == set(before)
