@@ -1,7 +1,11 @@
 """The command line: smoke runs, the leaderboard, and clear errors on bad input."""
 
+import argparse
+import importlib
 import io
 import json
+import subprocess
+import sys
 import warnings
 from importlib.metadata import version
 
@@ -10,7 +14,7 @@ import pandas as pd
 import pytest
 from tqdm import tqdm
 
-from kkl_bench.cli import main, recorded_command
+from kkl_bench.cli import COMMANDS, main, recorded_command
 from kkl_bench.cli.run import BAR, advance
 from kkl_bench.estimator import Estimator
 from kkl_bench.registry import estimators
@@ -378,3 +382,30 @@ def test_version_prints_what_a_cell_records_and_exits(capsys):
     commit = recorded["git_commit"] or "not a git checkout"
     assert first == f"kkl-bench {version('kkl-bench')} (git {commit})"
     assert f"torch {version('torch')}" in packages and f"Python {recorded['python']}" in packages
+
+
+@pytest.mark.parametrize("name", list(COMMANDS))
+def test_every_listed_command_is_declared_with_a_handler_by_its_module(name):
+    module, _ = COMMANDS[name]
+    siblings = [other for other, (owner, _) in COMMANDS.items() if owner == module]
+    parsers = {other: argparse.ArgumentParser(prog=other) for other in siblings}
+    importlib.import_module(f"kkl_bench.cli.{module}").add_arguments(parsers)
+    assert callable(parsers[name].get_default("handler"))
+
+
+def test_help_and_a_mistyped_command_answer_without_loading_the_numerical_stack():
+    """Only the module of the command given is imported: listing the commands, or
+    refusing an unknown one, loads none of the heavy packages the commands need."""
+    probe = (
+        "import contextlib, io, sys\n"
+        "from kkl_bench.cli import main\n"
+        "for argv in (['--help'], ['frobnicate']):\n"
+        "    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(io.StringIO()),"
+        " contextlib.redirect_stderr(io.StringIO()):\n"
+        "        main(argv)\n"
+        "print(sorted({'torch', 'pandas', 'numba', 'scipy'} & set(sys.modules)))\n"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True
+    ).stdout
+    assert loaded.strip() == "[]"

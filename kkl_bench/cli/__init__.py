@@ -1,9 +1,11 @@
 """The ``kkl-bench`` command line.
 
 Thin by design: each subcommand's module declares its arguments beside the
-code that runs it (``add_parser``), and calls the harness, the leaderboard,
+code that runs it (``add_arguments``), and calls the harness, the leaderboard,
 the reporting layer or the conformance kit. ``main`` only dispatches and turns
-the errors a user can fix into one line and exit status 2.
+the errors a user can fix into one line and exit status 2. Only the module of the
+command given is imported (:data:`COMMANDS`), so ``kkl-bench --help``, ``--version``
+and a mistyped command answer without loading torch, pandas or numba.
 
 Layer: the top; it may import every other layer, and none imports it.
 """
@@ -11,14 +13,13 @@ Layer: the top; it may import every other layer, and none imports it.
 from __future__ import annotations
 
 import argparse
+import importlib
 import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from kkl_bench.cli import admin, publishing, regenerate, run, tables, verify
 from kkl_bench.registry import PluginLoadError, UnknownNameError
-from kkl_bench.suite.task import ProfileError
 from kkl_bench.support.provenance import provenance
 
 EXAMPLES = """\
@@ -44,11 +45,54 @@ examples:
   kkl-bench --version
 """
 
-COMMANDS = (admin, run, regenerate, tables, publishing, verify)
-"""The modules that declare the subcommands (``add_parser``), in the order help lists them."""
+COMMANDS = {
+    "list": ("admin", "list systems, regimes, estimators, tracks and profiles"),
+    "cache": ("admin", "show, clear, export or import the cache of trained models"),
+    "check": ("admin", "run the conformance checks on an estimator or a system"),
+    "fit-times": ("admin", "record how long fits take, for the estimates of kkl-bench run"),
+    "headroom": (
+        "admin",
+        "UKF against the particle-filter limit on a track's validation streams (for choosing "
+        "a track's settings; never reads a test stream)",
+    ),
+    "run": ("run", "fit estimators and score them on the test sets"),
+    "regenerate": (
+        "regenerate",
+        "compute every cell of a results folder again (resumable), into another folder",
+    ),
+    "leaderboard": ("tables", "print the leaderboard from stored results"),
+    "compare": ("tables", "compare two estimators cell by cell with a paired bootstrap"),
+    "trainings": (
+        "tables",
+        "how the learned rows' trainings ended: steps, why they stopped, the step kept",
+    ),
+    "publish": (
+        "publishing",
+        "write a leaderboard folder (README, LaTeX, CSV, figures, index.html) from results",
+    ),
+    "plot": ("publishing", "draw the figures from stored results (PNG and SVG)"),
+    "scaling": (
+        "publishing",
+        "the Lorenz-96 scaling study: fit time, online cost and RMSE against n",
+    ),
+    "throughput": (
+        "publishing",
+        "what each learned row's training achieves: samples/s and GFLOP/s over the peak",
+    ),
+    "cost": (
+        "publishing",
+        "time every estimator's estimate side by side on the paper track (cost.csv)",
+    ),
+    "verify": ("verify", "re-derive published cells at the current commit and compare them"),
+}
+"""Each subcommand, in the order help lists them: the module of :mod:`kkl_bench.cli` whose
+``add_arguments`` declares its arguments and handler, and the line help lists it with."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
+    """The parser of ``kkl-bench`` for the command line ``argv``: every subcommand is
+    listed, and the one ``argv`` names (its first word that is not an option), if any,
+    is declared in full by its module, which only then is imported."""
     parser = argparse.ArgumentParser(
         prog="kkl-bench",
         description="Benchmark state observers of nonlinear systems driven by exogenous inputs.",
@@ -61,8 +105,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="print the versions and the git commit a cell of this installation records, and exit",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in COMMANDS:
-        module.add_parser(commands)
+    parsers = {  # the line is each one's description too, unless its module gives a longer one
+        name: commands.add_parser(name, help=line, description=line)
+        for name, (_, line) in COMMANDS.items()
+    }
+    given = next((word for word in argv if not word.startswith("-")), None)
+    if given in COMMANDS:
+        module = COMMANDS[given][0]
+        importlib.import_module(f"kkl_bench.cli.{module}").add_arguments(
+            {name: parsers[name] for name, (owner, _) in COMMANDS.items() if owner == module}
+        )
     return parser
 
 
@@ -111,14 +163,13 @@ def recorded_command(argv: Sequence[str], cwd: Path | None = None) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(argv)
+    args = build_parser(argv).parse_args(argv)
     args.command_line = recorded_command(argv)
     try:
         return args.handler(args)
     except (
         UnknownNameError,
         PluginLoadError,
-        ProfileError,
         ValueError,
         OSError,
         ImportError,

@@ -24,22 +24,21 @@ from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
 from kkl_bench.testing.systems import run_system_checks
 
 
-def add_parser(commands) -> None:
-    listing = commands.add_parser(
-        "list", help="list systems, regimes, estimators, tracks and profiles"
-    )
+def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
+    """Declare the arguments and the handler of each command of this module (``parsers``:
+    their parsers by name, :data:`kkl_bench.cli.COMMANDS`)."""
+    listing = parsers["list"]
     listing.set_defaults(handler=list_everything)
 
-    cache = commands.add_parser(
-        "cache",
-        help="show, clear, export or import the cache of trained models",
-        description="info: what the cache holds; clear: delete it; export FOLDER: copy its "
+    cache = parsers["cache"]
+    cache.description = (
+        "info: what the cache holds; clear: delete it; export FOLDER: copy its "
         "trained models (checksummed, never over an intact one) into FOLDER, e.g. one that travels "
         "to another machine with a long regeneration; import FOLDER: copy them from FOLDER "
         "into the cache. The checkpoints of trainings under way travel with "
         "--with-checkpoints (an export makes FOLDER's the cache's own: newer ones replace "
         "older, a finished training's are dropped; an import keeps those already in the "
-        "cache); kernels compiled for one machine never do.",
+        "cache); kernels compiled for one machine never do."
     )
     cache.add_argument("action", choices=("info", "clear", "export", "import"))
     cache.add_argument("folder", nargs="?", type=Path, help="for export and import")
@@ -51,13 +50,12 @@ def add_parser(commands) -> None:
     add_cache_argument(cache)
     cache.set_defaults(handler=manage_cache)
 
-    check = commands.add_parser(
-        "check",
-        help="run the conformance checks on an estimator or a system",
-        description="Run the conformance kit on an estimator (fitted on the quick profile's "
+    check = parsers["check"]
+    check.description = (
+        "Run the conformance kit on an estimator (fitted on the quick profile's "
         "budget, updated with the estimator's check_budget) or, given a system's name, the "
         "system checks (shapes, Jacobians against finite differences, torch tensors, finite "
-        "trajectories).",
+        "trajectories)."
     )
     check.add_argument(
         "estimator", metavar="NAME", help="estimator name or variant, or a system's name"
@@ -72,13 +70,12 @@ def add_parser(commands) -> None:
     )
     check.set_defaults(handler=check_conformance)
 
-    times = commands.add_parser(
-        "fit-times",
-        help="record how long fits take, for the estimates of kkl-bench run",
-        description="Measure, per profile, row and system, the median training seconds of "
+    times = parsers["fit-times"]
+    times.description = (
+        "Measure, per profile, row and system, the median training seconds of "
         "the fits behind the cells of each RESULTS folder and their scoring seconds per cell, "
         "and merge them into --out (default: the table the package ships, which "
-        "`kkl-bench run` estimates from where its own results folder has no record).",
+        "`kkl-bench run` estimates from where its own results folder has no record)."
     )
     times.add_argument("--results", type=Path, nargs="+", required=True, metavar="DIR")
     times.add_argument(
@@ -90,11 +87,7 @@ def add_parser(commands) -> None:
     )
     times.set_defaults(handler=record_fit_times)
 
-    room = commands.add_parser(
-        "headroom",
-        help="UKF against the particle-filter limit on a track's validation streams "
-        "(for choosing a track's settings; never reads a test stream)",
-    )
+    room = parsers["headroom"]
     room.add_argument("--track", required=True, metavar="NAME", help="track to measure")
     room.add_argument("--system", nargs="+", metavar="NAME", help="systems (default: all)")
     room.add_argument("--regime", nargs="+", metavar="NAME", help="tasks (default: all)")

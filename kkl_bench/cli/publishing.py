@@ -36,13 +36,14 @@ from kkl_bench.support.devices import DEVICES
 from kkl_bench.support.provenance import provenance
 
 
-def add_parser(commands) -> None:
-    publish = commands.add_parser(
-        "publish",
-        help="write a leaderboard folder (README, LaTeX, CSV, figures, index.html) from results",
-        description="Write the leaderboard folder from stored results alone: README.md with "
+def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
+    """Declare the arguments and the handler of each command of this module (``parsers``:
+    their parsers by name, :data:`kkl_bench.cli.COMMANDS`)."""
+    publish = parsers["publish"]
+    publish.description = (
+        "Write the leaderboard folder from stored results alone: README.md with "
         "the tables, LaTeX, CSV, figures (needs matplotlib: pip install 'kkl-bench[plot]') "
-        "and a static index.html. The same results give byte-identical files.",
+        "and a static index.html. The same results give byte-identical files."
     )
     add_drawing_arguments(publish, Path("leaderboard"), "the folder to write")
     publish.add_argument(
@@ -59,24 +60,22 @@ def add_parser(commands) -> None:
     )
     publish.set_defaults(handler=publish_folder)
 
-    plot = commands.add_parser(
-        "plot",
-        help="draw the figures from stored results (PNG and SVG)",
-        description="Per (system, regime) the states and error norm on test trajectory 0, "
+    plot = parsers["plot"]
+    plot.description = (
+        "Per (system, regime) the states and error norm on test trajectory 0, "
         "a heat map of RMSE relative to the UKF, and cost against RMSE. "
-        "Needs matplotlib: pip install 'kkl-bench[plot]'.",
+        "Needs matplotlib: pip install 'kkl-bench[plot]'."
     )
     add_drawing_arguments(plot, Path("."), "figures go to DIR/figures/")
     plot.set_defaults(handler=draw)
 
-    scaling = commands.add_parser(
-        "scaling",
-        help="the Lorenz-96 scaling study: fit time, online cost and RMSE against n",
-        description="From the more-systems cells of Lorenz-96 (n = 5 to 160) and the "
+    scaling = parsers["scaling"]
+    scaling.description = (
+        "From the more-systems cells of Lorenz-96 (n = 5 to 160) and the "
         "models their run cached, time every fitted estimator's estimate side by side "
         "(batch 20 and 1, one thread) and write scaling.md, scaling.csv and "
         "figures/scaling.png|svg with the fitted exponent of each cost. Run "
-        "`kkl-bench run --track more-systems --estimator all` first, with the same --cache.",
+        "`kkl-bench run --track more-systems --estimator all` first, with the same --cache."
     )
     add_drawing_arguments(scaling, Path("leaderboard"), "the folder to write")
     add_cache_argument(scaling)
@@ -108,15 +107,14 @@ def add_parser(commands) -> None:
     )
     scaling.set_defaults(handler=scaling_study)
 
-    throughput = commands.add_parser(
-        "throughput",
-        help="what each learned row's training achieves: samples/s and GFLOP/s over the peak",
-        description="Run each learned row's fit at the profile's sizes from an empty "
+    throughput = parsers["throughput"]
+    throughput.description = (
+        "Run each learned row's fit at the profile's sizes from an empty "
         "temporary cache (nothing is kept), with every training measured instead of run "
         "to the end: one optimizer step's matrix products counted, then --steps steps "
         "timed, on --threads threads (or the GPU: --device), beside that device's float32 "
         "peak. Merges one row per training into DIR/training-throughput.csv and prints the "
-        "table protocol 6.5 shows.",
+        "table protocol 6.5 shows."
     )
     throughput.add_argument(
         "--estimator",
@@ -155,16 +153,15 @@ def add_parser(commands) -> None:
     add_out_argument(throughput, Path("leaderboard"), "the folder whose CSV to merge into")
     throughput.set_defaults(handler=measure_throughput)
 
-    cost = commands.add_parser(
-        "cost",
-        help="time every estimator's estimate side by side on the paper track (cost.csv)",
-        description="Load each estimator's trained models from the cache (fitting them if "
+    cost = parsers["cost"]
+    cost.description = (
+        "Load each estimator's trained models from the cache (fitting them if "
         "missing), then time its estimate on every test set of the chosen tracks, all "
         "estimators and the EKF beside them in turn in one process, on --threads threads, "
         "best of --rounds. Merges the rows into DIR/cost.csv (the other rows keep their own "
         "runs; --replace rewrites it), which `kkl-bench publish` shows in the cost table in "
         "place of the times the scoring runs measured (those come from many runs and "
-        "machine loads).",
+        "machine loads)."
     )
     cost.add_argument(
         "--estimator",

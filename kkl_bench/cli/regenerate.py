@@ -19,17 +19,18 @@ from kkl_bench.support.executors import EXECUTORS
 from kkl_bench.support.provenance import provenance
 
 
-def add_parser(commands) -> None:
-    parser = commands.add_parser(
-        "regenerate",
-        help="compute every cell of a results folder again (resumable), into another folder",
-        description="Plan the jobs that make every cell of --from (one profile; narrowed by "
+def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
+    """Declare the arguments and the handler of each command of this module (``parsers``:
+    their parsers by name, :data:`kkl_bench.cli.COMMANDS`)."""
+    parser = parsers["regenerate"]
+    parser.description = (
+        "Plan the jobs that make every cell of --from (one profile; narrowed by "
         "--estimator, --track, --system): fits, and jobs that only score trained models. "
         "Print the plan and its estimated core-hours, then compute the cells into --into, "
         "each row as `kkl-bench run` of that row makes it. Rerun the same command to resume: "
         "finished cells are skipped and a killed training continues from its checkpoint. "
         f"Each job's processor time goes to --into/"
-        f"{ledger.LEDGER_FILE}; `kkl-bench publish --results INTO` states the core-hours.",
+        f"{ledger.LEDGER_FILE}; `kkl-bench publish --results INTO` states the core-hours."
     )
     parser.add_argument(
         "--from",

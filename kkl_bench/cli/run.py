@@ -42,12 +42,13 @@ RESUME = (
 )
 
 
-def add_parser(commands) -> None:
-    run = commands.add_parser(
-        "run",
-        help="fit estimators and score them on the test sets",
-        description="Fit each estimator once per system, score it on every regime's test set, "
-        "and write one result file per cell. Cells already on disk are skipped (use --force).",
+def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
+    """Declare the arguments and the handler of each command of this module (``parsers``:
+    their parsers by name, :data:`kkl_bench.cli.COMMANDS`)."""
+    run = parsers["run"]
+    run.description = (
+        "Fit each estimator once per system, score it on every regime's test set, "
+        "and write one result file per cell. Cells already on disk are skipped (use --force)."
     )
     run.add_argument(
         "--estimator",

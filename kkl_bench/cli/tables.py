@@ -17,8 +17,10 @@ from kkl_bench.suite.task import get_profile, load_profiles
 from kkl_bench.suite.tracks import get_track
 
 
-def add_parser(commands) -> None:
-    board = commands.add_parser("leaderboard", help="print the leaderboard from stored results")
+def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
+    """Declare the arguments and the handler of each command of this module (``parsers``:
+    their parsers by name, :data:`kkl_bench.cli.COMMANDS`)."""
+    board = parsers["leaderboard"]
     board.add_argument("--format", choices=text.FORMATS, default="markdown")
     add_reading_arguments(board)
     board.add_argument(
@@ -46,12 +48,11 @@ def add_parser(commands) -> None:
     )
     board.set_defaults(handler=print_leaderboard)
 
-    versus = commands.add_parser(
-        "compare",
-        help="compare two estimators cell by cell with a paired bootstrap",
-        description="Per cell: the ratio of A's mean RMSE to B's, its 90 % interval from the "
+    versus = parsers["compare"]
+    versus.description = (
+        "Per cell: the ratio of A's mean RMSE to B's, its 90 % interval from the "
         "paired hierarchical bootstrap (test trajectories and seeds resampled) and the verdict "
-        "of one-sided tests at 5 %.",
+        "of one-sided tests at 5 %."
     )
     versus.add_argument("a", metavar="A", help="estimator (or variant) name")
     versus.add_argument("b", metavar="B", help="estimator (or variant) name")
@@ -61,17 +62,16 @@ def add_parser(commands) -> None:
     )
     versus.set_defaults(handler=compare)
 
-    fits = commands.add_parser(
-        "trainings",
-        help="how the learned rows' trainings ended: steps, why they stopped, the step kept",
-        description="Per learned row, system and training (read from the fit reports of the "
+    fits = parsers["trainings"]
+    fits.description = (
+        "Per learned row, system and training (read from the fit reports of the "
         "track's cells, each fit once): the fits, their steps, how many stopped at the "
         "plateau, at the cap or diverged (protocol 6.5), and the median step whose state was "
         "kept; then how many of the track's learned cells the board reads as converged. "
         "With --before, each row's mean RMSE per system (and regime, with --by-regime) "
         "against another results folder's, on the cells both scored (a refit's before and "
         "after); a cell with a diverged trajectory in either is left out of both means and "
-        "counted.",
+        "counted."
     )
     add_reading_arguments(fits)
     fits.add_argument(

@@ -22,16 +22,17 @@ from kkl_bench.run import verification
 from kkl_bench.support.provenance import provenance
 
 
-def add_parser(commands) -> None:
-    verify = commands.add_parser(
-        "verify",
-        help="re-derive published cells at the current commit and compare them",
-        description="Recompute cells (named ones, or a random sample) at the current commit "
+def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
+    """Declare the arguments and the handler of each command of this module (``parsers``:
+    their parsers by name, :data:`kkl_bench.cli.COMMANDS`)."""
+    verify = parsers["verify"]
+    verify.description = (
+        "Recompute cells (named ones, or a random sample) at the current commit "
         "from an empty model cache, exactly as `kkl-bench run` made them, and report per "
         "cell: identical (bit for bit), within tolerance (largest per-trajectory relative "
         "RMSE difference) or drifted, with the likely cause. Each verdict is appended to "
         f"--out/{verification.VERIFICATION_FILE} as soon as it is known; `kkl-bench publish` "
-        "reports the latest run in the board's Reproduce section. Exit 1 if any cell drifted.",
+        "reports the latest run in the board's Reproduce section. Exit 1 if any cell drifted."
     )
     verify.add_argument(
         "cells",
