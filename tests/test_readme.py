@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from kkl_bench.cli import build_parser
 from kkl_bench.estimator import Estimator, FitContext
 from kkl_bench.measurement import MeasurementModel, NoiseLaw
 from kkl_bench.protocol.system import System
@@ -159,3 +160,32 @@ def test_the_plugin_guide_names_every_field_as_its_docstring_says():
     assert {"f", "h", "f_jacobian", "h_jacobian", "g", "n_x", "n_y"} <= set(documented(System))
     needed = {"variance", "inlier_variance", "mixture", "log_density", "observe_every", "sensor"}
     assert needed <= set(documented(MeasurementModel))
+
+
+def documented_commands() -> list[tuple[str, str]]:
+    """``(file, command)`` for each ``kkl-bench`` command in the code blocks of the README
+    and of ``docs/`` (a line's commands joined by ``&&`` or ``;`` apart; a line continued
+    with a backslash joined)."""
+    found = []
+    for path in [README, *sorted((README.parent / "docs").glob("*.md"))]:
+        for block in re.findall(r"```\w*\n(.*?)```", path.read_text(), re.DOTALL):
+            for line in block.replace("\\\n", " ").splitlines():
+                for command in re.split(r"&&|;", line):
+                    if command.strip().startswith("kkl-bench "):
+                        found.append((path.name, command.strip()))
+    return found
+
+
+def test_every_command_in_the_documentation_s_code_blocks_parses(capsys):
+    """An option renamed or removed fails here, not in a reader's terminal."""
+    commands = documented_commands()
+    assert len(commands) > 20
+    refused = []
+    for source, command in commands:
+        argv = shlex.split(command.partition(" > ")[0], comments=True)[1:]
+        try:
+            build_parser(argv).parse_args(argv)
+        except SystemExit as exit_status:
+            if exit_status.code:
+                refused.append(f"{source}: {command}: {capsys.readouterr().err.strip()}")
+    assert not refused, "\n".join(refused)
