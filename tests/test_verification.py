@@ -165,6 +165,39 @@ def test_a_drift_is_blamed_on_the_budget_only_when_the_steps_or_samples_differ(r
     )
 
 
+def test_the_estimate_counts_a_shared_model_once_and_each_filter_fit(results, capsys):
+    """Two cells of KKL rows on one Phase-1 model (its 100 s counted at the first only),
+    their own phases (30 s and 20 s), and a filter's cell whose 2 s fit caches nothing
+    (counted at each cell); each scored at 50 µs a step, 5 trajectories of 1001 samples."""
+    published = read_cell(results / "quick" / f"{CELL}.json")
+    phase1 = {"steps": 10, "seconds": 100.0}
+
+    def cell(estimator, own=None, fit_time_s=2.0):
+        spent = {} if own is None else {"phase1": phase1, "phase2": {"steps": 5, "seconds": own}}
+        return dataclasses.replace(
+            published,
+            estimator=estimator,
+            fit_report={"spent": spent},
+            fit_time_s=fit_time_s,
+            estimate_us_per_step=50.0,
+            n_test=5,
+        )
+
+    scoring = 50e-6 * 5 * 1001  # the paper track's 20 s at dt = 0.02: 1001 samples
+    cells = [
+        cell("static_hyperkkl", 30.0),
+        cell("dynamic_hyperkkl", 20.0),
+        cell("ekf"),
+        cell("ekf"),
+    ]
+    assert verification.estimated_seconds(cells) == pytest.approx(
+        [130.0 + scoring, 20.0 + scoring, 2.0 + scoring, 2.0 + scoring]
+    )
+
+    assert verify(results, CELL)[0] == 0
+    assert "estimated " in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [

@@ -255,10 +255,10 @@ def announce(
     if not todo:
         duration = "nothing to do"
     elif not unknown:
-        duration = f"estimated {_duration(sum(recorded))} (fit times recorded on this profile)"
+        duration = f"estimated {duration_text(sum(recorded))} (fit times recorded on this profile)"
     else:
         duration = (
-            f"estimated {_duration(sum(recorded))} for the fits recorded on this profile; "
+            f"estimated {duration_text(sum(recorded))} for the fits recorded on this profile; "
             f"no estimate for {', '.join(unknown[:4])}{' ...' if len(unknown) > 4 else ''} "
             "(none recorded): the time left shows after the first"
         )
@@ -274,7 +274,7 @@ def announce(
     return [fallback if math.isnan(s) else s for s in seconds]
 
 
-def _duration(seconds: float) -> str:
+def duration_text(seconds: float) -> str:
     """``seconds`` as ``42 s``, ``12 min`` or ``3.5 h``."""
     if seconds < 90:
         return f"{seconds:.0f} s"

@@ -17,8 +17,9 @@ from kkl_bench.cli.common import (
     positive_integer,
     seed,
 )
-from kkl_bench.cli.run import showing_jobs
+from kkl_bench.cli.run import advance, duration_text, showing_jobs, work_bar
 from kkl_bench.run import verification
+from kkl_bench.run.results import read_cell
 from kkl_bench.support.provenance import provenance
 
 
@@ -101,19 +102,31 @@ def verify_cells(args: argparse.Namespace) -> int:
         selection = f"random {len(paths)} of {len(every)} (--sample-seed {draw})"
     commit = provenance()["git_commit"]
     out_file = args.out / verification.VERIFICATION_FILE
+    root = args.results / args.profile
     run = None
     if args.resume:
         run, done = verification.run_to_resume(out_file, selection)
-        root = args.results / args.profile
         paths = [path for path in paths if path.relative_to(root).as_posix() not in done]
         print(
             f"going on with the run of {run}: {len(done)} cell(s) verified before",
             file=sys.stderr,
         )
-    print(f"verifying {len(paths)} cell(s) at commit {commit}, {selection}", file=sys.stderr)
+    estimates = dict(
+        zip(
+            (path.relative_to(root).as_posix() for path in paths),
+            verification.estimated_seconds([read_cell(path) for path in paths]),
+            strict=True,
+        )
+    )
+    print(
+        f"verifying {len(paths)} cell(s) at commit {commit}, {selection}; estimated "
+        f"{duration_text(sum(estimates.values()))} on one thread a cell (from the cells' recorded "
+        "training and scoring times, each model trained once)",
+        file=sys.stderr,
+    )
     with (
         tempfile.TemporaryDirectory(prefix="kkl-bench-verify-") as work,
-        tqdm(total=len(paths), unit="cell", desc="verify", dynamic_ncols=True) as bar,
+        work_bar(sum(estimates.values()), f"verify ({len(paths)} cells, estimated work)") as bar,
         showing_jobs(bar, Path(work) / "results" / ".claims" / args.profile),
     ):
 
@@ -124,7 +137,7 @@ def verify_cells(args: argparse.Namespace) -> int:
                 + (f"  (largest difference {difference:.3g}" if difference else "")
                 + (f"; {row['cause']})" if row["cause"] else (")" if difference else ""))
             )
-            bar.update()
+            advance(bar, estimates[row["cell"]])
 
         rows = verification.verify(
             paths,

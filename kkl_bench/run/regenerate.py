@@ -25,7 +25,6 @@ the board's Reproduce section reads them.
 
 from __future__ import annotations
 
-import math
 import re
 from collections import defaultdict
 from collections.abc import Callable, Iterable
@@ -36,7 +35,6 @@ from typing import Any
 import pandas as pd
 
 from kkl_bench import variants
-from kkl_bench.protocol import DT
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.run import harness
 from kkl_bench.run.harness import Job, JobOutcome, RunSpec
@@ -48,7 +46,7 @@ from kkl_bench.run.ledger import (
     record_job,
     running_seconds,
 )
-from kkl_bench.run.results import phase_seconds, trained_models
+from kkl_bench.run.results import phase_seconds, scoring_seconds, trained_models
 from kkl_bench.suite.task import Profile, Task
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.devices import resolve as resolve_device
@@ -407,19 +405,10 @@ class _CostRecords:
                 self.trained.add(shared)
                 fit += seconds
         scoring = sum(
-            _scoring_seconds(cell, task) for cell, task in zip(cells, job.tasks, strict=True)
+            scoring_seconds(cell, task.definition.n_samples)
+            for cell, task in zip(cells, job.tasks, strict=True)
         )
         return fit, scoring
-
-
-def _scoring_seconds(cell, task) -> float:
-    """``cell``'s estimation time over its test set: its µs per trajectory-step times the
-    trajectories and samples of ``task``."""
-    per_step = cell.estimate_us_per_step
-    if not (isinstance(per_step, float) and math.isfinite(per_step)):
-        return 0.0
-    samples = round(task.definition.horizon / DT) + 1
-    return per_step * 1e-6 * cell.n_test * samples
 
 
 def _timed_job(spec: RunSpec, job: Job, key: str) -> tuple[JobOutcome, dict[str, float], str]:

@@ -362,6 +362,15 @@ def phase_seconds(cell) -> dict[str, float]:
     return {"fit": _seconds_or_zero(cell.fit_time_s)}
 
 
+def scoring_seconds(cell, samples: int) -> float:
+    """The time ``cell``'s estimate of its test set took: its µs per trajectory-step times
+    its trajectories and the ``samples`` of each (its task's); 0 where not recorded."""
+    per_step = cell.estimate_us_per_step
+    if not (isinstance(per_step, float) and math.isfinite(per_step)):
+        return 0.0
+    return per_step * 1e-6 * cell.n_test * samples
+
+
 def _seconds_or_zero(value: object) -> float:
     """``value`` if a finite number of seconds, else 0 (nothing recorded)."""
     return float(value) if isinstance(value, float | int) and math.isfinite(value) else 0.0

@@ -27,9 +27,18 @@ from filelock import FileLock
 
 from kkl_bench.registry import did_you_mean
 from kkl_bench.run import harness
-from kkl_bench.run.results import CellResult, cell_path, estimate_path, read_cell, trained_models
+from kkl_bench.run.results import (
+    CellResult,
+    cell_path,
+    estimate_path,
+    phase_seconds,
+    read_cell,
+    scoring_seconds,
+    trained_models,
+)
 from kkl_bench.run.spec import RunSpec
 from kkl_bench.suite.task import get_profile
+from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.executors import execute
 from kkl_bench.support.provenance import provenance
 
@@ -123,6 +132,31 @@ def recompute(cell: CellResult, work: Path, command: str | None = None) -> tuple
         cell.track,
     )  # fmt: skip
     return read_cell(path), path
+
+
+def estimated_seconds(cells: Sequence[CellResult]) -> list[float]:
+    """Each of ``cells``' processor seconds to recompute it in one :func:`verify` run,
+    estimated from its own record as ``kkl-bench regenerate`` estimates a job: the
+    training its fit recorded (:func:`~kkl_bench.run.results.phase_seconds`) plus its
+    scoring. The recomputations share one model cache, so a model a cell shares with an
+    earlier one of ``cells`` (:func:`~kkl_bench.run.results.trained_models`: a Phase-1
+    model under several KKL rows, one model scored on several tracks) is counted at the
+    earlier cell only; a fit that caches nothing (a filter's) is counted at each."""
+    trained: set[tuple] = set()
+    estimates = []
+    for cell in cells:
+        cached = trained_models(cell)
+        fit = 0.0
+        for phase, seconds in phase_seconds(cell).items():
+            model = (cell.system, cell.seed, phase, seconds)
+            if model in trained:
+                continue
+            if model in cached:
+                trained.add(model)
+            fit += seconds
+        task = get_track(cell.track).task(cell.regime, cell.system)
+        estimates.append(fit + scoring_seconds(cell, task.n_samples))
+    return estimates
 
 
 def largest_relative_difference(published: Sequence[float], recomputed: Sequence[float]) -> float:
