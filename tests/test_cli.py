@@ -109,9 +109,16 @@ def test_bad_names_are_clear_errors(args, message, capsys, tmp_path):
     assert message in capsys.readouterr().err
 
 
-def test_leaderboard_without_results_says_what_to_do(tmp_path, capsys):
+def test_leaderboard_without_results_says_what_to_do(tmp_path, capsys, monkeypatch):
     assert main(["leaderboard", "--results", str(tmp_path)]) == 2
     assert "no results under" in capsys.readouterr().err
+
+    monkeypatch.chdir(tmp_path)  # in a checkout, it points to the published board's cells
+    (tmp_path / "leaderboard" / "results").mkdir(parents=True)
+    assert main(["leaderboard"]) == 2
+    assert "the published board's are in leaderboard/results/ (--results leaderboard/results)" in (
+        capsys.readouterr().err
+    )
 
 
 @pytest.mark.parametrize(

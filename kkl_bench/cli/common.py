@@ -65,6 +65,10 @@ def seed(text: str) -> int:
     return int(text)
 
 
+PUBLISHED_RESULTS = Path("leaderboard/results")
+"""Where a checkout of the project holds the published board's cells."""
+
+
 def add_results_argument(parser: argparse.ArgumentParser, default: Path = Path("results")) -> None:
     parser.add_argument(
         "--results",
@@ -145,7 +149,12 @@ def load(
     for error in damaged:
         print(f"kkl-bench: warning: left out {error}", file=sys.stderr)
     if results.empty:
-        raise ValueError(f"no results under {args.results}/; run `kkl-bench run` first")
+        published = (
+            f"; the published board's are in {PUBLISHED_RESULTS}/ (--results {PUBLISHED_RESULTS})"
+            if PUBLISHED_RESULTS.is_dir() and Path(args.results) != PUBLISHED_RESULTS
+            else ""
+        )
+        raise ValueError(f"no results under {args.results}/; run `kkl-bench run` first{published}")
     profiles = sorted(set(results["profile"]))
     profile = args.profile or ("standard" if "standard" in profiles else profiles[0])
     if profile not in profiles:

@@ -8,7 +8,12 @@ import sys
 import time
 from pathlib import Path
 
-from kkl_bench.cli.common import add_cache_argument, add_jobs_argument, device_before_work
+from kkl_bench.cli.common import (
+    PUBLISHED_RESULTS,
+    add_cache_argument,
+    add_jobs_argument,
+    device_before_work,
+)
 from kkl_bench.cli.run import RESUME, following, showing_jobs, work_bar
 from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
@@ -36,7 +41,7 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
         "--from",
         dest="source",
         type=Path,
-        default=Path("leaderboard/results"),
+        default=PUBLISHED_RESULTS,
         metavar="DIR",
         help="the results whose cells are regenerated (default leaderboard/results); never written",
     )

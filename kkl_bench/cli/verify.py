@@ -11,6 +11,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from kkl_bench.cli.common import (
+    PUBLISHED_RESULTS,
     add_jobs_argument,
     add_out_argument,
     add_results_argument,
@@ -54,7 +55,7 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
         help="the draw of --sample (default: a fresh one, recorded with the verdicts so that "
         "the same cells can be drawn again)",
     )
-    add_results_argument(verify, Path("leaderboard/results"))
+    add_results_argument(verify, PUBLISHED_RESULTS)
     verify.add_argument(
         "--profile", default="standard", help="the profile of the cells (default standard)"
     )
