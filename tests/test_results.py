@@ -15,7 +15,6 @@ from kkl_bench.run.results import (
     load_results,
     read_cell,
     read_estimate,
-    trajectory_table,
     write_cell,
 )
 from kkl_bench.support import provenance as provenance_module
@@ -59,8 +58,6 @@ def test_load_results_adds_summary_columns(tmp_path):
     assert table.loc["zero", "rmse_mean"] == math.inf
     assert table.loc["constant", "rmse_mean"] == pytest.approx(0.2)
     assert table.loc["constant", "rmse_std"] == pytest.approx(0.1)
-    long = trajectory_table(load_results(tmp_path))
-    assert len(long) == 4 and set(long["trajectory"]) == {0, 1}
 
 
 def test_empty_directory_gives_an_empty_table(tmp_path):

@@ -65,10 +65,6 @@ def _spent(cells: pd.DataFrame) -> dict[str, float]:
     }
 
 
-VERSION_KEYS = ("protocol", "toolkit")
-"""What must agree between the cells of one table (the profile is chosen before)."""
-
-
 def versions(results: pd.DataFrame) -> pd.DataFrame:
     """Per cell: its ``protocol`` and ``toolkit`` (KKL toolkit version; None where the
     estimator records none)."""

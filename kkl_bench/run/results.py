@@ -404,15 +404,6 @@ def mean_and_std(values: list[float]) -> tuple[float, float]:
     return float(array.mean()), float(array.std())
 
 
-def trajectory_table(results: pd.DataFrame) -> pd.DataFrame:
-    """Long format: one row per scored test trajectory (identity columns + metrics)."""
-    scored = results[results["status"] == "ok"]
-    identity = ["estimator", "track", "system", "regime", "profile", "seed"]
-    long = scored[[*identity, "rmse", "smape", "nrmse"]].explode(["rmse", "smape", "nrmse"])
-    long["trajectory"] = long.groupby(identity).cumcount()
-    return long.astype({"rmse": float, "smape": float, "nrmse": float}).reset_index(drop=True)
-
-
 def _to_json(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
