@@ -50,7 +50,10 @@ def test_cache_location_follows_the_environment(monkeypatch, tmp_path):
 
 
 def test_cache_command_reports_and_clears(tmp_path, capsys):
-    stored(tmp_path)
+    checkpoints, _ = stored(tmp_path)
+    with checkpoints.claim("test-kind", DESCRIPTION):  # leaves its lock file, empty
+        pass
+    assert cache_info(tmp_path)[0].entries == 1 and cache_info(tmp_path)[0].damaged == 0
     assert main(["cache", "info", "--cache", str(tmp_path)]) == 0
     assert "test-kind: 1 entries" in capsys.readouterr().out
     assert main(["cache", "clear", "--cache", str(tmp_path)]) == 0

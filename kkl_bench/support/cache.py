@@ -134,13 +134,16 @@ class CacheKind:
     damaged: int
 
 
+NOT_ENTRIES = (".sha256", ".tmp", ".lock")
+"""The files of a cache folder that are no entry of it: checksum sidecars, copies being
+written, and the locks of models claimed (``<key>.pt.lock``: left behind, empty)."""
+
+
 def cache_info(root: Path) -> list[CacheKind]:
     """What the cache at ``root`` holds, kind by kind (empty if it does not exist)."""
     kinds = []
     for folder in sorted(p for p in Path(root).glob("*") if p.is_dir()):
-        entries = [
-            p for p in folder.iterdir() if p.is_file() and not p.name.endswith((".sha256", ".tmp"))
-        ]
+        entries = [p for p in folder.iterdir() if p.is_file() and not p.name.endswith(NOT_ENTRIES)]
         damaged = sum(not _intact(p) for p in entries)
         size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
         kinds.append(CacheKind(folder.name, len(entries), size, damaged))
