@@ -12,7 +12,7 @@ from kkl_bench.report.provenance import (
 )
 
 
-def cell(estimator, scored, trained=None, seed=0):
+def cell(estimator, scored, trained=None, seed=0, status="ok"):
     """A results row: scored at commit ``scored``, its model trained at ``trained``
     (per phase; None: no training recorded)."""
     spent = (
@@ -26,6 +26,7 @@ def cell(estimator, scored, trained=None, seed=0):
         "track": "paper",
         "regime": "sinusoid",
         "seed": seed,
+        "status": status,
         "provenance": {"git_commit": scored, "command": "kkl-bench run"},
         "fit_report": {} if spent is None else {"spent": spent},
     }
@@ -44,6 +45,7 @@ def test_a_row_says_which_commits_trained_its_models_and_how_many_cells_each():
             cell("kkl", "c1", ["t1", "t1"]),
             cell("kkl", "c1", ["t1", "t1"], seed=1),
             cell("kkl", "c0", [], seed=2),  # trained before the commit was recorded
+            cell("kkl", "c1", seed=3, status="unsupported"),  # no model: not counted
             cell("ekf", "c1"),
         ]
     )

@@ -47,7 +47,8 @@ def training_commits(fit_report: dict | None) -> set[str]:
 
 def _trained_by(reports) -> str:
     """``41fe503615c0 (462); not recorded (330)``: the training commits of a row's cells
-    (``reports``: their fit reports) with how many cells each, empty if no cell trains."""
+    (``reports``: the fit reports of those it fitted, not of its ``unsupported`` ones, which
+    have no model) with how many cells each, empty if no cell trains."""
     if not any(trained(report) for report in reports):
         return ""  # nothing trained (a filter)
     counts: dict[str, int] = {}
@@ -179,7 +180,8 @@ def runs_frame(results: pd.DataFrame) -> pd.DataFrame:
         for track in _in_track_order(set(seeds.index)):
             by_seeds.setdefault(seeds[track], []).append(track)
         commands = dict.fromkeys(cells["command"])
-        reports = cells["fit_report"] if "fit_report" in cells else [None] * len(cells)
+        fitted = cells[cells["status"] != "unsupported"] if "status" in cells else cells
+        reports = fitted["fit_report"] if "fit_report" in fitted else [None] * len(fitted)
         rows.append(
             {
                 "estimator": f"`{name}`",
