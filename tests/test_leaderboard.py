@@ -207,6 +207,19 @@ def test_comparison_gives_the_ratio_its_interval_and_a_verdict():
         "low lower",
     ]
     assert "not distinguishable" in comparison_table(summary, "low", "same")
+    with_diverged = summary_table(
+        results_frame((("low", [[0.1, 0.2]]), ("lost", [[0.1, math.inf]])))
+    )
+    lost = next(
+        line
+        for line in comparison_table(with_diverged, "low", "lost").splitlines()
+        if line.startswith("| Duffing Zero ")
+    )
+    assert [cell.strip() for cell in lost.strip("|").split("|")][3:] == [
+        "0",
+        "a trajectory diverged",
+        "diverged",
+    ]
     with pytest.raises(
         ValueError, match="no results for 'nobody'; estimators in the results: high, low, same"
     ):

@@ -76,8 +76,8 @@ def comparison_cells(
     frame: pd.DataFrame, last: Sequence[str], headers: Sequence[str], id: str = ""
 ) -> Table:
     """The rows of a :func:`comparison_frame` as shown: cell, both RMSEs, ratio and
-    ``[low, high]`` (3 significant digits), then the row's item of ``last``, under
-    ``headers`` (six)."""
+    ``[low, high]`` (3 significant digits; ``a trajectory diverged`` where the bootstrap
+    has no interval), then the row's item of ``last``, under ``headers`` (six)."""
     keys = ["cell", "rmse_a", "rmse_b", "ratio", "interval", "last"]
     rows = [
         [
@@ -85,7 +85,9 @@ def comparison_cells(
             f"{row.rmse_a:.3g}",
             f"{row.rmse_b:.3g}",
             f"{row.ratio:.3g}",
-            f"[{row.low:.3g}, {row.high:.3g}]",
+            f"[{row.low:.3g}, {row.high:.3g}]"
+            if row.verdict != "diverged"
+            else "a trajectory diverged",
             extra,
         ]
         for row, extra in zip(frame.itertuples(), last, strict=True)
