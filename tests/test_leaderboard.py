@@ -9,7 +9,7 @@ import pytest
 
 from kkl_bench.analysis import comparisons
 from kkl_bench.analysis.comparisons import limit_frame
-from kkl_bench.analysis.leaderboard import grid_tables, track_summary_table
+from kkl_bench.analysis.leaderboard import cost_table, grid_tables, track_summary_table
 from kkl_bench.analysis.significance import (
     SEED,
     mark_column,
@@ -23,6 +23,7 @@ from kkl_bench.analysis.summary import (
     track_summary,
     unsupported_reasons,
 )
+from kkl_bench.report import html
 from kkl_bench.report.markdown import table
 from kkl_bench.report.text import render
 
@@ -476,3 +477,19 @@ def test_a_row_with_no_cell_in_a_table_is_left_out_of_it():
     tables = grid_tables(summary, systems_per_table=1)
     rows = {table.columns["c2"]: list(table.frame["c0"]) for table in tables}
     assert "vdp_only" in rows["Van der Pol Zero"] and "vdp_only" not in rows["Duffing Zero"]
+
+
+def test_the_cost_table_writes_steps_and_samples_as_counts_and_blank_where_none():
+    spent = {"phase1": {"steps": 94600, "samples": 134758400}, "phase2": {"steps": 4000}}
+    frame = results_frame((("kkl", [0.1, 0.2]), ("ekf", [0.1, 0.2])))
+    frame["fit_report"] = [{"spent": spent} if e == "kkl" else {} for e in frame["estimator"]]
+    costs = cost_table(summary_table(frame))
+    rows = {
+        line.split("|")[1].strip(): [cell.strip() for cell in line.split("|")[3:9]]
+        for line in table(costs).splitlines()[2:]
+        if "duffing" in line
+    }
+    assert rows["kkl"][2:6] == ["94,600", "134,758,400", "4,000", ""]
+    assert rows["ekf"][2:6] == ["", "", "", ""]
+    page = html.table(costs)
+    assert ">94,600</td>" in page and 'data-value="Infinity"></td>' in page

@@ -267,6 +267,8 @@ def cost_frame(summary: pd.DataFrame) -> pd.DataFrame:
             for key in COST_COLUMNS
         }
     )
+    counts = [key for key in COST_COLUMNS if key.endswith(("_steps", "_samples"))]
+    grouped[counts] = grouped[counts].round().astype("Int64")  # written as counts: 94,600
     order = {system: i for i, system in enumerate(in_paper_order(ours["system"], SYSTEM_TITLES))}
     return grouped.reset_index().sort_values(
         ["estimator", "system"], key=lambda c: c.map(order) if c.name == "system" else c

@@ -12,6 +12,7 @@ from __future__ import annotations
 import html
 import itertools
 import math
+import numbers
 import re
 
 import pandas as pd
@@ -58,18 +59,18 @@ def shade(ratio: float) -> str:
 
 
 def _number_text(value, block: Table) -> str:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return html.escape(str(value))
-    if isinstance(value, float) and math.isnan(value):
+    if pd.isna(value):  # NaN, or a count column's missing value (pd.NA)
         return ""
-    if isinstance(value, int):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return html.escape(str(value))
+    if isinstance(value, numbers.Integral):
         return format(value, block.intfmt)
     return format(value, block.floatfmt)
 
 
 def _sort_value(value) -> str:
     """A ``data-value`` for sorting numbers: as they are, missing or infinite as +inf."""
-    if isinstance(value, float) and not math.isfinite(value):
+    if pd.isna(value) or not math.isfinite(value):
         return "Infinity"
     return repr(float(value))
 
