@@ -481,8 +481,9 @@ def test_a_row_with_no_cell_in_a_table_is_left_out_of_it():
 
 def test_the_cost_table_writes_steps_and_samples_as_counts_and_blank_where_none():
     spent = {"phase1": {"steps": 94600, "samples": 134758400}, "phase2": {"steps": 4000}}
-    frame = results_frame((("kkl", [0.1, 0.2]), ("ekf", [0.1, 0.2])))
+    frame = results_frame((("kkl", [0.1, 0.2]), ("ekf", [0.1, 0.2]), ("ring", [0.1, 0.2])))
     frame["fit_report"] = [{"spent": spent} if e == "kkl" else {} for e in frame["estimator"]]
+    frame.loc[frame["estimator"] == "ring", "status"] = "unsupported"  # no row: nothing ran
     costs = cost_table(summary_table(frame))
     rows = {
         line.split("|")[1].strip(): [cell.strip() for cell in line.split("|")[3:9]]
@@ -491,5 +492,6 @@ def test_the_cost_table_writes_steps_and_samples_as_counts_and_blank_where_none(
     }
     assert rows["kkl"][2:6] == ["94,600", "134,758,400", "4,000", ""]
     assert rows["ekf"][2:6] == ["", "", "", ""]
+    assert set(rows) == {"kkl", "ekf"}
     page = html.table(costs)
     assert ">94,600</td>" in page and 'data-value="Infinity"></td>' in page

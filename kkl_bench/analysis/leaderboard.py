@@ -259,8 +259,11 @@ _COST_AGGREGATES = {
 
 
 def cost_frame(summary: pd.DataFrame) -> pd.DataFrame:
-    """Per (estimator, system): costs, training budget spent, NRMSE and map quality."""
-    ours = summary[~summary["estimator"].str.startswith(PAPER_PREFIX)]
+    """Per (estimator, system): costs, training budget spent, NRMSE and map quality; an
+    estimator's system where every cell is ``unsupported`` (nothing ran) is left out."""
+    ours = summary[
+        ~summary["estimator"].str.startswith(PAPER_PREFIX) & (summary["status"] != "unsupported")
+    ]
     grouped = ours.groupby(["estimator", "system"]).agg(
         **{
             key: (key, _COST_AGGREGATES.get(key, "first" if "phase" in key else "mean"))
