@@ -6,13 +6,14 @@ from kkl_bench.report.provenance import (
     NOT_RECORDED,
     dirty_cells,
     dirty_sentence,
+    provenance_facts,
     runs_frame,
     training_commit_sentence,
     training_commits,
 )
 
 
-def cell(estimator, scored, trained=None, seed=0, status="ok"):
+def cell(estimator, scored, trained=None, seed=0, status="ok", platform="Linux-a"):
     """A results row: scored at commit ``scored``, its model trained at ``trained``
     (per phase; None: no training recorded)."""
     spent = (
@@ -27,7 +28,7 @@ def cell(estimator, scored, trained=None, seed=0, status="ok"):
         "regime": "sinusoid",
         "seed": seed,
         "status": status,
-        "provenance": {"git_commit": scored, "command": "kkl-bench run"},
+        "provenance": {"git_commit": scored, "command": "kkl-bench run", "platform": platform},
         "fit_report": {} if spent is None else {"spent": spent},
     }
 
@@ -114,3 +115,13 @@ def test_the_board_says_which_commits_trained_its_models():
         "each): `aaa` (2); `aaa, bbb` (1); not recorded (1)."
     )
     assert training_commit_sentence(pd.DataFrame({"fit_report": [{}]})) == ""
+
+
+def test_the_platforms_are_named_with_their_cells_where_there_are_several():
+    one = pd.DataFrame([cell("kkl", "c1"), cell("kkl", "c1", seed=1)]).assign(protocol="v1")
+    assert provenance_facts(one)["platform"] == ["Linux-a"]
+    two = pd.concat([one, pd.DataFrame([cell("kkl", "c1", seed=2, platform="Linux-b")])])
+    assert provenance_facts(two.assign(protocol="v1"))["platform"] == [
+        "Linux-a (2 cells)",
+        "Linux-b (1 cell)",
+    ]

@@ -207,14 +207,25 @@ RUN_COLUMNS = {
 }
 
 
-def _versions(results: pd.DataFrame) -> dict[str, list[str]]:
-    """Distinct protocol, package versions, commits and Pythons in the results."""
+def provenance_facts(results: pd.DataFrame) -> dict[str, list[str]]:
+    """Distinct protocol, package versions, commits, Pythons and platforms in the results
+    (a platform with the cells written on it, where there are several: a trained model
+    can come out otherwise on another processor, protocol section 9)."""
     facts: dict[str, set[str]] = {"protocol": set(results["protocol"])}
+    platforms: dict[str, int] = {}
     for record in results["provenance"]:
         for package, version in record.get("versions", {}).items():
             facts.setdefault(package, set()).add(version)
         facts.setdefault("git commit", set()).add(str(record.get("git_commit")))
         facts.setdefault("python", set()).add(str(record.get("python")))
+        platform = str(record.get("platform"))
+        platforms[platform] = platforms.get(platform, 0) + 1
+    if len(platforms) > 1:
+        facts["platform"] = {
+            f"{name} ({count} cell{'s' * (count != 1)})" for name, count in platforms.items()
+        }
+    elif platforms:
+        facts["platform"] = set(platforms)
     return {key: sorted(values) for key, values in facts.items()}
 
 
@@ -252,7 +263,7 @@ def regeneration_sentence(summary: dict | None, cells: int) -> str:
 def provenance_sections(board: Board) -> list[Section]:
     seeds = ", ".join(map(str, sorted(set(board.results["seed"]))))
     facts = [("seeds", seeds)] + [
-        (key, ", ".join(values)) for key, values in _versions(board.results).items()
+        (key, ", ".join(values)) for key, values in provenance_facts(board.results).items()
     ]
     versions = pd.DataFrame(facts, columns=["what", "value"])
     cells = board.cells_of_every_track
