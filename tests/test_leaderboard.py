@@ -480,9 +480,13 @@ def test_a_row_with_no_cell_in_a_table_is_left_out_of_it():
 
 
 def test_the_cost_table_writes_steps_and_samples_as_counts_and_blank_where_none():
-    spent = {"phase1": {"steps": 94600, "samples": 134758400}, "phase2": {"steps": 4000}}
+    spent = {
+        "phase1": {"steps": 94600, "samples": 134758400, "seconds": 12000.0},
+        "phase2": {"steps": 4000, "seconds": 345.4},
+    }
     frame = results_frame((("kkl", [0.1, 0.2]), ("ekf", [0.1, 0.2]), ("ring", [0.1, 0.2])))
     frame["fit_report"] = [{"spent": spent} if e == "kkl" else {} for e in frame["estimator"]]
+    frame["fit_time_s"] = 0.0005  # the kkl row's is its phases' 12345.4 s
     frame.loc[frame["estimator"] == "ring", "status"] = "unsupported"  # no row: nothing ran
     costs = cost_table(summary_table(frame))
     rows = {
@@ -492,6 +496,7 @@ def test_the_cost_table_writes_steps_and_samples_as_counts_and_blank_where_none(
     }
     assert rows["kkl"][2:6] == ["94,600", "134,758,400", "4,000", ""]
     assert rows["ekf"][2:6] == ["", "", "", ""]
+    assert (rows["kkl"][0], rows["ekf"][0]) == ("12,345", "0")  # fit times in whole seconds
     assert set(rows) == {"kkl", "ekf"}
     page = html.table(costs)
     assert ">94,600</td>" in page and 'data-value="Infinity"></td>' in page

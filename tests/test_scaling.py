@@ -304,6 +304,8 @@ def test_report_states_exponents_crossovers_and_failures():
     study.loc[3, ["status", "reason", "rmse"]] = ["error", "MemoryError: 40 GB", math.nan]
     text = render_scaling(study, "standard")
     assert "| ekf         | 40  | failed: MemoryError: 40 GB |" in text
+    assert "| kkl | 40 | 0.1 | 5,120 | yes |" in squeezed(text)  # fit times in whole seconds
+    assert "| ekf | 20 | 0.1 | 0 | |" in squeezed(text)
     study.loc[7, ["status", "reason", "rmse"]] = ["unsupported", "too big here", math.nan]
     text = render_scaling(study, "standard")
     assert "| kkl         | 40  | unsupported " in text

@@ -260,7 +260,8 @@ _COST_AGGREGATES = {
 
 def cost_frame(summary: pd.DataFrame) -> pd.DataFrame:
     """Per (estimator, system): costs, training budget spent, NRMSE and map quality; an
-    estimator's system where every cell is ``unsupported`` (nothing ran) is left out."""
+    estimator's system where every cell is ``unsupported`` (nothing ran) is left out. Fit
+    times are whole seconds, steps and samples counts (``Int64``, missing where none)."""
     ours = summary[
         ~summary["estimator"].str.startswith(PAPER_PREFIX) & (summary["status"] != "unsupported")
     ]
@@ -270,8 +271,10 @@ def cost_frame(summary: pd.DataFrame) -> pd.DataFrame:
             for key in COST_COLUMNS
         }
     )
-    counts = [key for key in COST_COLUMNS if key.endswith(("_steps", "_samples"))]
-    grouped[counts] = grouped[counts].round().astype("Int64")  # written as counts: 94,600
+    # written as whole numbers: 94,600 steps; a fit of 7,660 s (noisy wall times, from
+    # under a second for a filter's to hours for a hypernetwork's)
+    whole = ["fit_time_s", *(key for key in COST_COLUMNS if key.endswith(("_steps", "_samples")))]
+    grouped[whole] = grouped[whole].round().astype("Int64")
     order = {system: i for i, system in enumerate(in_paper_order(ours["system"], SYSTEM_TITLES))}
     return grouped.reset_index().sort_values(
         ["estimator", "system"], key=lambda c: c.map(order) if c.name == "system" else c

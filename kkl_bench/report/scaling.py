@@ -49,7 +49,7 @@ def study_section(frame: pd.DataFrame, profile: str) -> Section:
                     estimator,
                     row.n,
                     _rmse(row),
-                    _cost(row.fit_time_s) if ok else "-",
+                    _seconds(row.fit_time_s) if ok else "-",
                     row.converged if ok else "-",
                     *(_online(row, batch) for batch in BATCHES),
                     *(_cost(getattr(row, column)) for column in (RMSE_RATIO, *SPEEDUPS)),
@@ -288,6 +288,12 @@ def _not_run(frame: pd.DataFrame, profile: str) -> list[Text]:
 
 def _cost(value: float) -> str:
     return f"{value:.3g}" if isinstance(value, float) and math.isfinite(value) else "-"
+
+
+def _seconds(value: float) -> str:
+    """A fit time in whole seconds (a filter's fraction of a second reads 0), as the
+    board's cost table writes it."""
+    return f"{value:,.0f}" if isinstance(value, float) and math.isfinite(value) else "-"
 
 
 def _exponent(value: float) -> str:
