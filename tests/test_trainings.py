@@ -60,7 +60,7 @@ def test_each_fit_is_read_once_with_its_trainings_steps_stop_and_kept_step():
     table = trainings.training_table(records).set_index("Training")
     decoder = table.loc["phase1_log.decoder"]
     assert decoder["Fits"] == 2 and decoder["Steps (median)"] == 16000
-    assert decoder["Steps (range)"] == "12000-20000"
+    assert decoder["Steps (range)"] == "12,000-20,000"
     assert (decoder["Stopped: plateau"], decoder["Stopped: cap"]) == (1, 1)
     assert decoder["Kept step (median)"] == 12900
     level = table.loc["training_log.sine 0.2-0.8 rad/s"]  # before the rule: its last step

@@ -168,7 +168,8 @@ def own_records(records: pd.DataFrame, shared: pd.DataFrame) -> pd.DataFrame:
 def training_table(records: pd.DataFrame) -> pd.DataFrame:
     """Per row, system and training (in the order met): how many fits ran it, the median
     and range of their steps, how many stopped for each reason (:data:`STOPS`, those that
-    occurred), and the median step of the state kept."""
+    occurred), and the median step of the state kept (``Int64`` counts, a median between
+    two fits' rounded to the nearest step)."""
     stops = [stop for stop in STOPS if (records["stopped"] == stop).any()]
     rows = []
     for (estimator, system, training), group in records.groupby(
@@ -182,12 +183,15 @@ def training_table(records: pd.DataFrame) -> pd.DataFrame:
                 "Training": training,
                 "Fits": len(group),
                 "Steps (median)": steps.median(),
-                "Steps (range)": f"{steps.min():.0f}-{steps.max():.0f}",
+                "Steps (range)": f"{steps.min():,.0f}-{steps.max():,.0f}",
                 **{f"Stopped: {stop}": int((group["stopped"] == stop).sum()) for stop in stops},
                 "Kept step (median)": group["best_step"].median(),
             }
         )
-    return pd.DataFrame(rows)
+    table = pd.DataFrame(rows)
+    medians = ["Steps (median)", "Kept step (median)"]
+    table[medians] = table[medians].round().astype("Int64")  # missing: no step recorded
+    return table
 
 
 def cell_verdicts(cells: pd.DataFrame) -> pd.DataFrame:

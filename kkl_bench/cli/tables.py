@@ -127,7 +127,7 @@ def print_trainings(args: argparse.Namespace) -> int:
     records = trainings.training_records(results)
     if records.empty:
         raise ValueError(f"no trained fits among the {args.track} track's cells in {args.results}/")
-    print(markdown.table(Table(trainings.training_table(records), floatfmt=".5g")))
+    print(markdown.table(Table(trainings.training_table(records), intfmt=",")))
     said = [
         trainings.converged_sentence(trainings.cell_verdicts(results)),
         trainings.capped_sentence(records),
