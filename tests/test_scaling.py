@@ -2,12 +2,15 @@
 
 import math
 import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
 from kkl_bench.analysis import scaling, scaling_timing
+from kkl_bench.cli import main
 from kkl_bench.report import markdown
 from kkl_bench.report.scaling import study_section, write_study
 from kkl_bench.suite.task import get_profile
@@ -417,3 +420,22 @@ def test_untrained_models_take_the_published_fits_choices(tmp_path):
     assert fitted.gain_ == 0.0
     last_steps = {curve[-1][0] for _, curve in convergence.curves(fitted.fit_report())}
     assert 2 + scaling_timing.UNTRAINED_STEPS in last_steps  # Phase 1's trainings were cut short
+
+
+BOARD = Path(__file__).resolve().parents[1] / "leaderboard"
+
+
+@pytest.mark.skipif(not (BOARD / "scaling.md").exists(), reason="no committed study here")
+def test_the_committed_study_is_what_the_code_renders_from_the_committed_results(tmp_path):
+    """scaling.md and scaling.csv as ``--render-only`` writes them from ``leaderboard/results``
+    and the study's stored online costs: a cell rescored, or a change to the report, is
+    committed with the study rendered again."""
+    pytest.importorskip("matplotlib")  # it draws the study's figures too
+    shutil.copy(BOARD / "scaling.csv", tmp_path)  # its stored timings
+    rendered = ["scaling", "--render-only", "--results", str(BOARD / "results")]
+    assert main([*rendered, "--out", str(tmp_path)]) == 0
+    for name in ("scaling.md", "scaling.csv"):
+        assert (tmp_path / name).read_bytes() == (BOARD / name).read_bytes(), (
+            f"leaderboard/{name} is not what `kkl-bench scaling --render-only --results "
+            "leaderboard/results` writes with this code: render it again"
+        )
