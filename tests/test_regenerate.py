@@ -145,6 +145,9 @@ def test_a_job_that_only_scores_is_counted_as_such_and_keeps_its_scoring_estimat
         described
     )
     assert "  ekf: 1 fits, 1 scoring only, 0.01 core-hours" in described
+    vdp = regenerate.PlannedJob(None, Job("ekf", "vdp", job.tasks, 0), fit_s=7200.0, scoring_s=0.0)
+    described = regenerate.Plan([scoring_only, fit, vdp], cells=3, done=0).describe()
+    assert "Per system, estimated: vdp 2.0, duffing 0.0 core-hours (`--system`" in described
 
 
 def test_a_resumed_plan_counts_each_row_s_fits_left_at_the_rate_its_finished_fits_took(

@@ -132,7 +132,8 @@ class Plan:
 
     def describe(self) -> str:
         """The plan in a few lines: rows, jobs (fits and scoring only), cells, estimated
-        core-hours."""
+        core-hours, and the expected core-hours per system (to split the work by
+        ``--system`` between machines or processes)."""
         rows = pd.Series([planned.job.estimator for planned in self.jobs]).value_counts()
         lines = [
             f"{len(self.jobs)} jobs of {rows.size} rows to make {self.cells - self.done} "
@@ -155,7 +156,24 @@ class Plan:
             )
         if self.rates is not None:
             lines.append(self.rates.describe(self.expected_s))
+        if self.jobs:
+            lines.append(self._per_system())
         return "\n".join(lines)
+
+    def _per_system(self) -> str:
+        """The expected core-hours of each system's jobs, most first."""
+        hours = pd.Series(
+            [planned.expected_s / 3600 for planned in self.jobs],
+            index=[planned.job.system for planned in self.jobs],
+        )
+        per_system = hours.groupby(level=0, sort=False).sum().sort_values(ascending=False)
+        at = "at the rates above" if self.rates is not None else "estimated"
+        return (
+            f"Per system, {at}: "
+            + ", ".join(f"{system} {value:.1f}" for system, value in per_system.items())
+            + " core-hours (`--system` runs some of them: runs on disjoint systems share one "
+            "target folder and its ledger side by side)"
+        )
 
 
 def _fits(jobs: list[PlannedJob]) -> str:
