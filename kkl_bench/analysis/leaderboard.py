@@ -271,8 +271,8 @@ def cost_frame(summary: pd.DataFrame) -> pd.DataFrame:
             for key in COST_COLUMNS
         }
     )
-    # written as whole numbers: 94,600 steps; a fit of 7,660 s (noisy wall times, from
-    # under a second for a filter's to hours for a hypernetwork's)
+    # written as whole numbers: 94,600 steps; a fit of 7,660 s (fit times run from under a
+    # second for a filter to hours for a hypernetwork: three digits read as 7.66e+03)
     whole = ["fit_time_s", *(key for key in COST_COLUMNS if key.endswith(("_steps", "_samples")))]
     grouped[whole] = grouped[whole].round().astype("Int64")
     order = {system: i for i, system in enumerate(in_paper_order(ours["system"], SYSTEM_TITLES))}
