@@ -402,11 +402,12 @@ def test_every_listed_command_is_declared_with_a_handler_by_its_module(name):
 
 def test_help_and_a_mistyped_command_answer_without_loading_the_numerical_stack():
     """Only the module of the command given is imported: listing the commands, or
-    refusing an unknown one, loads none of the heavy packages the commands need."""
+    refusing an unknown one, loads none of the heavy packages the commands need; nor do
+    `run --help` and a run with a bad argument (its module defers what a run needs)."""
     probe = (
         "import contextlib, io, sys\n"
         "from kkl_bench.cli import main\n"
-        "for argv in (['--help'], ['frobnicate']):\n"
+        "for argv in (['--help'], ['frobnicate'], ['run', '--help'], ['run', '--jobs', '0']):\n"
         "    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(io.StringIO()),"
         " contextlib.redirect_stderr(io.StringIO()):\n"
         "        main(argv)\n"

@@ -5,7 +5,10 @@ code that runs it (``add_arguments``), and calls the harness, the leaderboard,
 the reporting layer or the conformance kit. ``main`` only dispatches and turns
 the errors a user can fix into one line and exit status 2. Only the module of the
 command given is imported (:data:`COMMANDS`), so ``kkl-bench --help``, ``--version``
-and a mistyped command answer without loading torch, pandas or numba.
+and a mistyped command answer without loading torch, pandas or numba. The options
+the commands share are in :mod:`~kkl_bench.cli.arguments` (argparse alone) and what
+their handlers share in :mod:`~kkl_bench.cli.common`; ``run``, the command most typed,
+also imports its machinery only when it runs, so ``kkl-bench run --help`` is as quick.
 
 Layer: the top; it may import every other layer, and none imports it.
 """

@@ -12,7 +12,8 @@ import pandas as pd
 
 from kkl_bench import families, variants
 from kkl_bench.analysis.headroom import headroom
-from kkl_bench.cli.common import add_cache_argument, names
+from kkl_bench.cli.arguments import add_cache_argument
+from kkl_bench.cli.common import names
 from kkl_bench.measurement import sensors
 from kkl_bench.registry import estimators, regimes, systems
 from kkl_bench.run import fit_times

@@ -14,25 +14,22 @@ from kkl_bench.analysis import leaderboard
 from kkl_bench.analysis.findings import PAPER_SYSTEMS
 from kkl_bench.analysis.significance import MARGIN
 from kkl_bench.analysis.summary import summary_table
-from kkl_bench.cli.common import (
+from kkl_bench.cli.arguments import (
     add_cache_argument,
     add_drawing_arguments,
     add_out_argument,
     add_threads_argument,
-    exit_status,
-    load,
-    names,
-    of_track,
     positive_integer,
     seed,
 )
+from kkl_bench.cli.common import exit_status, load, names, of_track
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators, systems
 from kkl_bench.report import markdown
 from kkl_bench.run import harness
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support.cache import default_cache_dir
-from kkl_bench.support.devices import DEVICES
+from kkl_bench.support.device_names import DEVICES
 from kkl_bench.support.provenance import provenance
 
 

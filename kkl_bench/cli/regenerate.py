@@ -8,18 +8,14 @@ import sys
 import time
 from pathlib import Path
 
-from kkl_bench.cli.common import (
-    PUBLISHED_RESULTS,
-    add_cache_argument,
-    add_jobs_argument,
-    device_before_work,
-)
+from kkl_bench.cli.arguments import PUBLISHED_RESULTS, add_cache_argument, add_jobs_argument
+from kkl_bench.cli.common import device_before_work
 from kkl_bench.cli.run import RESUME, following, showing_jobs, work_bar
 from kkl_bench.run import ledger, regenerate
 from kkl_bench.run.results import load_results
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support.cache import default_cache_dir
-from kkl_bench.support.devices import DEVICES
+from kkl_bench.support.device_names import DEVICES
 from kkl_bench.support.executors import EXECUTORS
 from kkl_bench.support.provenance import provenance
 

@@ -1,4 +1,8 @@
-"""``kkl-bench run``: fit estimators and score them, with a progress line of what each job does."""
+"""``kkl-bench run``: fit estimators and score them, with a progress line of what each job does.
+
+The machinery of a run (the harness, the tasks, torch) is imported when the command runs,
+not with the module: ``kkl-bench run --help`` and an argument error answer at once.
+"""
 
 from __future__ import annotations
 
@@ -11,28 +15,27 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
-from kkl_bench.cli.common import (
+from kkl_bench.cli.arguments import (
     add_cache_argument,
     add_jobs_argument,
     add_results_argument,
-    device_before_work,
-    names,
     positive_integer,
     seed,
 )
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.registry import estimators, systems
-from kkl_bench.run import fit_times, harness
-from kkl_bench.suite.task import get_profile
-from kkl_bench.suite.tracks import load_tracks
 from kkl_bench.support import status
 from kkl_bench.support.cache import default_cache_dir
-from kkl_bench.support.devices import DEVICES
+from kkl_bench.support.device_names import DEVICES
 from kkl_bench.support.executors import EXECUTORS
 from kkl_bench.support.provenance import provenance
+
+if TYPE_CHECKING:
+    from kkl_bench.run import harness
 
 DEFAULT_PROFILE = "quick"
 
@@ -122,6 +125,11 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
 
 
 def run_command(args: argparse.Namespace) -> int:
+    from kkl_bench.cli.common import device_before_work, names
+    from kkl_bench.run import harness
+    from kkl_bench.suite.task import get_profile
+    from kkl_bench.suite.tracks import load_tracks
+
     spec = harness.RunSpec(
         estimators=names(estimators, args.estimator),
         systems=names(systems, args.system),
@@ -244,6 +252,8 @@ def announce(
     train, if not the CPU; None: each Dask worker's ``auto``) and its estimated duration,
     before any work; returns each fit's estimated seconds (the median of the others, or 1,
     where none is recorded: the bar still advances by fits)."""
+    from kkl_bench.run import fit_times
+
     cells = sum(len(job.tasks) for job in todo)
     rows = ", ".join(dict.fromkeys(job.estimator for job in todo)) or "nothing"
     profile = spec.profile.name + ("" if profile_given else " (the default; --profile to choose)")

@@ -9,7 +9,8 @@ from pathlib import Path
 from kkl_bench.analysis import comparisons, leaderboard, trainings
 from kkl_bench.analysis.document import Table
 from kkl_bench.analysis.summary import summary_table, track_summary, version_groups
-from kkl_bench.cli.common import add_reading_arguments, exit_status, load, of_track
+from kkl_bench.cli.arguments import add_reading_arguments
+from kkl_bench.cli.common import exit_status, load, of_track
 from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.report import markdown, text
 from kkl_bench.run.results import load_results

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from kkl_bench.cli.common import (
+from kkl_bench.cli.arguments import (
     PUBLISHED_RESULTS,
     add_jobs_argument,
     add_out_argument,

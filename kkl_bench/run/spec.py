@@ -28,7 +28,7 @@ from kkl_bench.suite.tracks import (
     tracks_of,
 )
 from kkl_bench.support.cache import default_cache_dir
-from kkl_bench.support.devices import check_device
+from kkl_bench.support.device_names import check_device
 from kkl_bench.training import TrainingData
 
 

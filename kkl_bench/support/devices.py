@@ -19,15 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
-DEVICES = ("auto", "cpu", "cuda")
-"""What ``--device`` accepts; ``auto`` is ``cuda`` when torch sees a GPU, else ``cpu``."""
-
-
-def check_device(name: str) -> str:
-    """``name`` if it is one of :data:`DEVICES` (else ``ValueError`` listing them)."""
-    if name not in DEVICES:
-        raise ValueError(f"unknown device {name!r}; valid devices: {', '.join(DEVICES)}")
-    return name
+from kkl_bench.support.device_names import check_device
 
 
 def resolve(name: str) -> str:
