@@ -400,14 +400,20 @@ def test_every_listed_command_is_declared_with_a_handler_by_its_module(name):
     assert callable(parsers[name].get_default("handler"))
 
 
+QUICK_TO_ANSWER = sorted(set(COMMANDS) - {"verify"})
+"""The commands whose ``--help`` loads none of the numerical stack: every one but ``verify``,
+whose help states its tolerance and file from the verification module (about 1 s)."""
+
+
 def test_help_and_a_mistyped_command_answer_without_loading_the_numerical_stack():
     """Only the module of the command given is imported: listing the commands, or
-    refusing an unknown one, loads none of the heavy packages the commands need; nor do
-    `run --help` and a run with a bad argument (its module defers what a run needs)."""
+    refusing an unknown one, loads none of the heavy packages the commands need; nor does
+    a command's ``--help`` or a run with a bad argument (each handler imports what it runs)."""
+    helps = [[name, "--help"] for name in QUICK_TO_ANSWER]
     probe = (
         "import contextlib, io, sys\n"
         "from kkl_bench.cli import main\n"
-        "for argv in (['--help'], ['frobnicate'], ['run', '--help'], ['run', '--jobs', '0']):\n"
+        f"for argv in (['--help'], ['frobnicate'], ['run', '--jobs', '0'], *{helps!r}):\n"
         "    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(io.StringIO()),"
         " contextlib.redirect_stderr(io.StringIO()):\n"
         "        main(argv)\n"
@@ -417,3 +423,14 @@ def test_help_and_a_mistyped_command_answer_without_loading_the_numerical_stack(
         [sys.executable, "-c", probe], capture_output=True, text=True, check=True
     ).stdout
     assert loaded.strip() == "[]"
+
+
+def test_a_reader_that_closes_the_pipe_ends_the_command_quietly(tmp_path):
+    """``kkl-bench ... | head``: the reader gone is no error to report; the command stops
+    with SIGPIPE's status, as other Unix tools do."""
+    command = [sys.executable, "-m", "kkl_bench.cli", "cache", "info", "--cache", str(tmp_path)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # before the command has written anything
+    stderr = process.stderr.read().decode()
+    assert process.wait() == 141
+    assert stderr == ""

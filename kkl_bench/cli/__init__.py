@@ -7,8 +7,9 @@ the errors a user can fix into one line and exit status 2. Only the module of th
 command given is imported (:data:`COMMANDS`), so ``kkl-bench --help``, ``--version``
 and a mistyped command answer without loading torch, pandas or numba. The options
 the commands share are in :mod:`~kkl_bench.cli.arguments` (argparse alone) and what
-their handlers share in :mod:`~kkl_bench.cli.common`; ``run``, the command most typed,
-also imports its machinery only when it runs, so ``kkl-bench run --help`` is as quick.
+their handlers share in :mod:`~kkl_bench.cli.common`. Each handler imports the machinery
+it runs when it runs, so a command's ``--help`` is as quick (all but ``verify``'s, whose
+help states the verification module's tolerance).
 
 Layer: the top; it may import every other layer, and none imports it.
 """
@@ -17,7 +18,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import shlex
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -170,6 +173,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.command_line = recorded_command(argv)
     try:
         return args.handler(args)
+    except BrokenPipeError:
+        return _reader_gone()
     except (
         UnknownNameError,
         PluginLoadError,
@@ -182,3 +187,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("kkl-bench: interrupted", file=sys.stderr)
         return 130
+
+
+def _reader_gone() -> int:
+    """The reader of standard output closed it (``kkl-bench leaderboard | head``): stop
+    quietly with the exit status of a process SIGPIPE ended, as other Unix tools do. What
+    is still buffered goes nowhere, instead of failing again when Python flushes it at
+    exit (the Python documentation's recipe, "Note on SIGPIPE")."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 128 + signal.SIGPIPE

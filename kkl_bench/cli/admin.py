@@ -1,28 +1,19 @@
-"""``kkl-bench list``, ``check``, ``cache`` and ``headroom``: what is installed, whether a
-plugin conforms, the trained models on disk, and how far a track's tasks put the UKF from
-the Bayes limit."""
+"""``kkl-bench list``, ``check``, ``cache``, ``fit-times`` and ``headroom``: what is installed,
+whether a plugin conforms, the trained models on disk, how long fits take, and how far a
+track's tasks put the UKF from the Bayes limit.
+
+Each handler imports what it runs (the plugins, pandas, the conformance kit),
+not the module: ``--help`` and an argument error answer at once.
+"""
 
 from __future__ import annotations
 
 import argparse
-import importlib.resources
 from pathlib import Path
 
-import pandas as pd
-
-from kkl_bench import families, variants
-from kkl_bench.analysis.headroom import headroom
 from kkl_bench.cli.arguments import add_cache_argument
-from kkl_bench.cli.common import names
-from kkl_bench.measurement import sensors
 from kkl_bench.registry import estimators, regimes, systems
-from kkl_bench.run import fit_times
-from kkl_bench.run.results import load_results
-from kkl_bench.suite.task import Task, load_profiles
-from kkl_bench.suite.tracks import broken_tracks, get_track, load_tracks
 from kkl_bench.support.cache import cache_info, carry_models, clear_cache, default_cache_dir
-from kkl_bench.testing import CHECK_SYSTEMS, describe, run_checks
-from kkl_bench.testing.systems import run_system_checks
 
 
 def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
@@ -65,9 +56,9 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
         "--system",
         nargs="+",
         metavar="NAME",
-        help=f"systems to check on, one fit each (default: {' '.join(CHECK_SYSTEMS)}, a two- "
-        "and a three-state system, or, for an estimator that supports neither, the first two "
-        "registered systems it supports)",
+        help="systems to check on, one fit each (default: the kit's two-state and three-state "
+        "systems, or, for an estimator that supports neither, the first two registered "
+        "systems it supports; the checks print each one's name)",
     )
     check.set_defaults(handler=check_conformance)
 
@@ -82,9 +73,8 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
     times.add_argument(
         "--out",
         type=Path,
-        default=Path(str(importlib.resources.files("kkl_bench").joinpath(fit_times.SHIPPED))),
         metavar="CSV",
-        help="the table to merge into (default: the package's)",
+        help="the table to merge into (default: the one the package ships)",
     )
     times.set_defaults(handler=record_fit_times)
 
@@ -105,6 +95,10 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
 
 
 def list_everything(args: argparse.Namespace) -> int:
+    from kkl_bench.measurement import sensors
+    from kkl_bench.suite.task import load_profiles
+    from kkl_bench.suite.tracks import broken_tracks, load_tracks
+
     for registry in (systems, regimes, sensors, estimators):
         broken = registry.broken()  # imports every plugin: list only what works
         listed = registry.names()
@@ -127,6 +121,8 @@ def list_everything(args: argparse.Namespace) -> int:
 
 def _family_label(cls: type) -> str:
     """``model-based``, or ``learned, undeclared`` for an estimator that declares none."""
+    from kkl_bench import families
+
     family = families.estimator_family(cls)
     return family if families.declared_family(cls) else f"{family}, undeclared"
 
@@ -170,6 +166,11 @@ def manage_cache(args: argparse.Namespace) -> int:
 
 
 def check_conformance(args: argparse.Namespace) -> int:
+    from kkl_bench import variants
+    from kkl_bench.cli.common import names
+    from kkl_bench.testing import describe, run_checks
+    from kkl_bench.testing.systems import run_system_checks
+
     if args.estimator in systems and args.estimator not in estimators:
         if args.system:
             raise ValueError(
@@ -193,13 +194,25 @@ def check_conformance(args: argparse.Namespace) -> int:
 
 
 def record_fit_times(args: argparse.Namespace) -> int:
+    import importlib.resources
+
+    import pandas as pd
+
+    from kkl_bench.run import fit_times
+    from kkl_bench.run.results import load_results
+
+    out = args.out or Path(str(importlib.resources.files("kkl_bench").joinpath(fit_times.SHIPPED)))
     measured = pd.concat([fit_times.measure(load_results(folder)) for folder in args.results])
-    table = fit_times.merge_into(args.out, measured)
-    print(f"{len(measured)} rows measured; {args.out} holds {len(table)}")
+    table = fit_times.merge_into(out, measured)
+    print(f"{len(measured)} rows measured; {out} holds {len(table)}")
     return 0
 
 
 def measure_headroom(args: argparse.Namespace) -> int:
+    from kkl_bench.analysis.headroom import headroom
+    from kkl_bench.suite.task import Task
+    from kkl_bench.suite.tracks import get_track
+
     track = get_track(args.track)
     for name in (args.system or []) + (args.regime or []):
         if name not in track.systems and name not in track.task_names():

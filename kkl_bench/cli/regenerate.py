@@ -1,5 +1,9 @@
 """``kkl-bench regenerate``: compute a published board's cells again, resumably, with
-its plan and estimated core-hours said first and an ETA counted in work."""
+its plan and estimated core-hours said first and an ETA counted in work.
+
+The handler imports the planner and the harness, not the module: ``--help`` and an
+argument error answer at once.
+"""
 
 from __future__ import annotations
 
@@ -9,11 +13,8 @@ import time
 from pathlib import Path
 
 from kkl_bench.cli.arguments import PUBLISHED_RESULTS, add_cache_argument, add_jobs_argument
-from kkl_bench.cli.common import device_before_work
 from kkl_bench.cli.run import RESUME, following, showing_jobs, work_bar
-from kkl_bench.run import ledger, regenerate
-from kkl_bench.run.results import load_results
-from kkl_bench.suite.task import get_profile
+from kkl_bench.run import ledger
 from kkl_bench.support.cache import default_cache_dir
 from kkl_bench.support.device_names import DEVICES
 from kkl_bench.support.executors import EXECUTORS
@@ -73,6 +74,11 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
 
 
 def regenerate_command(args: argparse.Namespace) -> int:
+    from kkl_bench.cli.common import device_before_work
+    from kkl_bench.run import regenerate
+    from kkl_bench.run.results import load_results
+    from kkl_bench.suite.task import get_profile
+
     if args.into.resolve() == args.source.resolve():
         raise ValueError(
             f"--into {args.into} is the source folder: regenerate into another folder, then "

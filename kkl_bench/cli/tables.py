@@ -1,28 +1,25 @@
 """``kkl-bench leaderboard``, ``kkl-bench compare`` and ``kkl-bench trainings``: tables of stored
-results in the terminal."""
+results in the terminal.
+
+Each handler imports the analysis it prints (pandas and the numerical stack), not the
+module: ``--help`` and an argument error answer at once.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from kkl_bench.analysis import comparisons, leaderboard, trainings
-from kkl_bench.analysis.document import Table
-from kkl_bench.analysis.summary import summary_table, track_summary, version_groups
 from kkl_bench.cli.arguments import add_reading_arguments
-from kkl_bench.cli.common import exit_status, load, of_track
 from kkl_bench.protocol.streams import PAPER_TRACK
-from kkl_bench.report import markdown, text
-from kkl_bench.run.results import load_results
-from kkl_bench.suite.task import get_profile, load_profiles
-from kkl_bench.suite.tracks import get_track
+from kkl_bench.report.formats import FORMATS
 
 
 def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
     """Declare the arguments and the handler of each command of this module (``parsers``:
     their parsers by name, :data:`kkl_bench.cli.COMMANDS`)."""
     board = parsers["leaderboard"]
-    board.add_argument("--format", choices=text.FORMATS, default="markdown")
+    board.add_argument("--format", choices=FORMATS, default="markdown")
     add_reading_arguments(board)
     board.add_argument(
         "--track",
@@ -90,6 +87,13 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
 
 
 def print_leaderboard(args: argparse.Namespace) -> int:
+    from kkl_bench.analysis import leaderboard
+    from kkl_bench.analysis.summary import summary_table, track_summary, version_groups
+    from kkl_bench.cli.common import exit_status, load, of_track
+    from kkl_bench.report import markdown, text
+    from kkl_bench.suite.task import get_profile, load_profiles
+    from kkl_bench.suite.tracks import get_track
+
     results, damaged = load(args, check_versions=not args.by_version)
     if args.track == "summary":
         frame = track_summary(results)
@@ -116,6 +120,11 @@ def print_leaderboard(args: argparse.Namespace) -> int:
 
 
 def compare(args: argparse.Namespace) -> int:
+    from kkl_bench.analysis import comparisons
+    from kkl_bench.analysis.summary import summary_table
+    from kkl_bench.cli.common import exit_status, load, of_track
+    from kkl_bench.report import markdown
+
     results, damaged = load(args)
     results = of_track(results, args.track)
     print(markdown.table(comparisons.comparison_table(summary_table(results), args.a, args.b)))
@@ -123,6 +132,12 @@ def compare(args: argparse.Namespace) -> int:
 
 
 def print_trainings(args: argparse.Namespace) -> int:
+    from kkl_bench.analysis import trainings
+    from kkl_bench.analysis.document import Table
+    from kkl_bench.cli.common import exit_status, load, of_track
+    from kkl_bench.report import markdown
+    from kkl_bench.run.results import load_results
+
     results, damaged = load(args)
     results = of_track(results, args.track)
     records = trainings.training_records(results)

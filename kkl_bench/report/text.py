@@ -8,8 +8,7 @@ from tabulate import tabulate
 
 from kkl_bench.analysis.leaderboard import MARKUP, _grid, _system_groups, grid_tables
 from kkl_bench.report import markdown
-
-FORMATS = ("markdown", "latex", "csv")
+from kkl_bench.report.formats import FORMATS
 
 
 def render(
