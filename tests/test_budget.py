@@ -1,7 +1,6 @@
 """Budget tables by system, and by system and measurement model (the hard track's fits)."""
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import pytest
 
@@ -9,6 +8,7 @@ from kkl_bench.kkl.config import budget_keys, from_budget
 from kkl_bench.measurement import MeasurementModel, NoiseLaw
 from kkl_bench.run.spec import FitConditions, conditioned_context
 from kkl_bench.suite.task import get_profile
+from tests import repository
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,7 @@ def test_a_table_without_the_systems_entry_or_a_default_names_the_keys_it_tried(
 def test_the_protocol_states_the_standard_profiles_caps():
     """Section 6's paragraph on training budgets names the cap of each training as the
     `standard` profile sets it (the profile holds caps; the plateau rule ends a training)."""
-    protocol = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
+    protocol = repository.PROTOCOL.read_text()
     start = protocol.index("Training budgets (decision of this project")
     paragraph = " ".join(protocol[start : protocol.index("\n\n", start)].split())
     profile = get_profile("standard")

@@ -2,7 +2,6 @@
 bound; an estimate that is never finite is an estimator fault."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 
@@ -12,6 +11,7 @@ from kkl_bench.estimator import Estimator
 from kkl_bench.protocol.metrics import DIVERGENCE_NRMSE, mark_diverged
 from kkl_bench.run.results import load_results
 from kkl_bench.testing import run_checks
+from tests.repository import PROTOCOL
 
 
 class AllNaN(Estimator):
@@ -101,5 +101,5 @@ def test_check_names_the_one_true_failure_of_an_all_nan_estimator():
 
 
 def test_the_protocol_states_the_bound_the_code_applies():
-    protocol = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
+    protocol = PROTOCOL.read_text()
     assert f"NRMSE exceeds {DIVERGENCE_NRMSE:g}" in protocol

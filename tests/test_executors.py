@@ -16,6 +16,7 @@ from kkl_bench.run.results import cell_path, load_results
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support import executors
 from kkl_bench.support.executors import execute
+from tests.repository import REPOSITORY
 
 GRID = dict(
     estimators=("ekf",),
@@ -154,7 +155,7 @@ def job_whose_worker_dies_on_vdp(spec, job):
 
 
 def test_a_dead_worker_keeps_finished_cells_and_records_the_rest(tmp_path, monkeypatch):
-    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).resolve().parents[1]), prepend=os.pathsep)
+    monkeypatch.setenv("PYTHONPATH", str(REPOSITORY), prepend=os.pathsep)
     monkeypatch.setattr(harness, "run_job", job_whose_worker_dies_on_vdp)
     summary = run(RunSpec(**GRID, results_dir=tmp_path), jobs=2)
     assert not summary.ok

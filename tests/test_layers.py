@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-REPOSITORY = Path(__file__).resolve().parents[1]
+from tests.repository import REPOSITORY
+
 PLUGIN_FOLDERS = ("estimators", "systems", "tasks")
 """Installed inside the package (pyproject's package-dir), kept at the top of the repository."""
 

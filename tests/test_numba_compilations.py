@@ -1,11 +1,10 @@
 """The ``--numba-compilations`` report (tests/numba_compilations.py) on a run of its own."""
 
 import json
-from pathlib import Path
 
 import pytest
 
-REPOSITORY = Path(__file__).resolve().parents[1]
+from tests.repository import REPOSITORY
 
 COMPILING = """
 import numba

@@ -15,11 +15,10 @@ import pytest
 
 from kkl_bench.analysis.cost import COST_FILE, read_costs
 from kkl_bench.report.publish import MANIFEST
+from tests.repository import BOARD
 
 pytest.importorskip("matplotlib")
 
-REPOSITORY = Path(__file__).resolve().parents[1]
-BOARD = REPOSITORY / "leaderboard"
 PLUGIN = Path(__file__).parent / "fixtures" / "fd_ekf_plugin"
 ROW = "fd_ekf"
 

@@ -8,12 +8,11 @@ from __future__ import annotations
 import hashlib
 import json
 import zlib
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-BOARD = Path(__file__).resolve().parents[1] / "leaderboard" / "results" / "standard"
+from tests.repository import BOARD_CELLS
 
 # docs/protocol.md section 7.5: the plant table, as published
 PLANT_TABLE = {
@@ -95,7 +94,7 @@ def duffing_sinusoid(n: int):
 
 def test_a_test_set_and_its_fingerprints_are_derived_from_the_protocol_alone():
     draws, data = duffing_sinusoid(20)
-    stored = json.loads((BOARD / "ekf" / "duffing" / "sinusoid-seed0.json").read_text())
+    stored = json.loads((BOARD_CELLS / "ekf" / "duffing" / "sinusoid-seed0.json").read_text())
     assert stored["n_test"] == 20
     assert fingerprint(*draws) == stored["stream_fingerprint"]
     assert fingerprint(*data) == stored["test_set_fingerprint"]

@@ -19,6 +19,7 @@ from kkl_bench.estimator import Estimator
 from kkl_bench.registry import estimators
 from kkl_bench.run.harness import RunSpec, run
 from kkl_bench.suite.task import get_profile
+from tests.repository import BOARD
 
 pytest.importorskip("matplotlib")
 
@@ -182,7 +183,6 @@ def check_rmse_cell(cell: str, seeds: str, records: list[dict] | None) -> int:
     return 1
 
 
-COMMITTED_BOARD = Path(__file__).resolve().parents[1] / "leaderboard"
 STUDY = ("scaling.csv", "figures/scaling.svg", "figures/scaling-curves.svg")
 
 
@@ -192,9 +192,9 @@ def page(results, tmp_path):
     it in the folder), if this checkout has one."""
     out = tmp_path / "board"
     for name in STUDY:
-        if (COMMITTED_BOARD / name).exists():
+        if (BOARD / name).exists():
             (out / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(COMMITTED_BOARD / name, out / name)
+            shutil.copyfile(BOARD / name, out / name)
     arguments = ["publish", "--results", str(results), "--profile", "quick", "--out", str(out)]
     assert main(arguments) == 0
     return out

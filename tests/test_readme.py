@@ -20,9 +20,8 @@ from kkl_bench.registry import estimators
 from kkl_bench.run.harness import RunSpec, run
 from kkl_bench.suite.task import get_profile
 from kkl_bench.testing import Conformance
+from tests.repository import README
 from tests.test_devices import fits_on_cpu_and_gpu
-
-README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def readme_block(marker: str) -> str:

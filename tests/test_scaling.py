@@ -3,7 +3,6 @@
 import math
 import re
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -15,6 +14,7 @@ from kkl_bench.report import markdown
 from kkl_bench.report.scaling import study_section, write_study
 from kkl_bench.suite.task import get_profile
 from kkl_bench.support import convergence
+from tests.repository import BOARD
 
 REGIMES = ("zero", "constant", "sinusoid", "square")
 
@@ -420,9 +420,6 @@ def test_untrained_models_take_the_published_fits_choices(tmp_path):
     assert fitted.gain_ == 0.0
     last_steps = {curve[-1][0] for _, curve in convergence.curves(fitted.fit_report())}
     assert 2 + scaling_timing.UNTRAINED_STEPS in last_steps  # Phase 1's trainings were cut short
-
-
-BOARD = Path(__file__).resolve().parents[1] / "leaderboard"
 
 
 @pytest.mark.skipif(not (BOARD / "scaling.md").exists(), reason="no committed study here")

@@ -3,7 +3,6 @@ running them, the table sums a fit's trainings by the steps each runs, the proto
 the committed measurement."""
 
 import re
-from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -14,8 +13,7 @@ from kkl_bench.analysis.cost import peak_gflops
 from kkl_bench.cli import main
 from kkl_bench.kkl.optimize import minimize, probing
 from kkl_bench.suite.task import get_profile
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.repository import BOARD, PROTOCOL
 
 
 def test_probe_counts_one_step_of_products_and_times_the_others():
@@ -162,8 +160,8 @@ def test_profile_sizes_reach_the_probe():
 
 
 def test_protocol_shows_the_committed_measurement():
-    measured = throughput.read_throughput(ROOT / "leaderboard" / throughput.THROUGHPUT_FILE)
-    protocol = (ROOT / "docs" / "protocol.md").read_text()
+    measured = throughput.read_throughput(BOARD / throughput.THROUGHPUT_FILE)
+    protocol = PROTOCOL.read_text()
     shown = re.search(r"<!-- training-throughput -->\n(.*?)\n\n", protocol, re.DOTALL)
     assert shown, "protocol 6.5 has no table after <!-- training-throughput -->"
     assert shown.group(1) == throughput.render(measured), (

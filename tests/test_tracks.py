@@ -3,7 +3,6 @@
 import json
 import math
 import zlib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,8 +18,8 @@ from kkl_bench.suite.tracks import (
     load_tracks,
     parse_track,
 )
+from tests.repository import BOARD_CELLS
 
-COMMITTED = Path(__file__).resolve().parents[1] / "leaderboard" / "results" / "standard"
 DT = 0.05
 
 
@@ -37,7 +36,7 @@ def test_the_built_in_tracks_paper_first():
     assert get_track("paper").task_names() == ["zero", "constant", "sinusoid", "square"]
 
 
-@pytest.mark.parametrize("path", sorted(COMMITTED.glob("ukf/*/*.json")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", sorted(BOARD_CELLS.glob("ukf/*/*.json")), ids=lambda p: p.stem)
 def test_paper_track_test_sets_match_the_committed_results(path):
     cell = json.loads(path.read_text())
     test_set = make_test_set(Task(cell["system"], cell["regime"]), cell["n_test"])
@@ -46,7 +45,7 @@ def test_paper_track_test_sets_match_the_committed_results(path):
 
 
 def test_committed_results_cover_all_sixteen_paper_cells():
-    assert len(list(COMMITTED.glob("ukf/*/*.json"))) == 16
+    assert len(list(BOARD_CELLS.glob("ukf/*/*.json"))) == 16
 
 
 def test_a_track_task_has_its_own_id_and_stream():
