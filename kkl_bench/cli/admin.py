@@ -9,6 +9,7 @@ not the module: ``--help`` and an argument error answer at once.
 from __future__ import annotations
 
 import argparse
+import importlib.resources
 from pathlib import Path
 
 from kkl_bench.cli.arguments import add_cache_argument
@@ -194,8 +195,6 @@ def check_conformance(args: argparse.Namespace) -> int:
 
 
 def record_fit_times(args: argparse.Namespace) -> int:
-    import importlib.resources
-
     import pandas as pd
 
     from kkl_bench.run import fit_times
