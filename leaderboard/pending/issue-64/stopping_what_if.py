@@ -9,8 +9,9 @@ every training the refit has finished so far, each once (a training is known by 
 seed, path in the fit report and curve: every KKL row of a system and seed shares Phase 1's,
 and a variant that only uses a row's networks differently online reports its row's):
 
-- ``after k halvings`` (k = 1..4): stop at the plateau that follows the k-th halving,
-  that is at the step of the (k+1)-th, instead of the sixth plateau;
+- ``after k halvings`` (k = 0..4): stop at the plateau that follows the k-th halving,
+  that is at the step of the (k+1)-th, instead of the sixth plateau (k = 0: at the first
+  plateau, the learning rate never lowered);
 - ``give up at the first plateau``: stop at the first plateau when no measurement since
   the start has been below the training's starting error, so the state it started from
   is kept (a curriculum level, an adaptation round or a fine-tuning that never improves
@@ -20,7 +21,9 @@ Steps saved are priced at each training's own processor seconds per step (``spen
 its fit report: Phase 1's encoder and decoder share Phase 1's, rate selection included).
 What a rule costs is the kept state's validation error against the refit's kept state's
 (1: the same state). Test errors would need the models scored again; validation errors
-are what the rule itself sees.
+are what the rule itself sees. Each training is replayed on its own: a Phase 1 stopped
+sooner would hand the trainings built on it another model, which no replay can follow,
+so the savings add up the trainings as the refit ran them.
 
 Run from the repository root: ``python leaderboard/pending/issue-64/stopping_what_if.py``.
 """
@@ -34,7 +37,7 @@ import sys
 from pathlib import Path
 
 RESULTS = Path(__file__).parent / "results"
-HALVINGS = (1, 2, 3, 4)
+HALVINGS = (0, 1, 2, 3, 4)
 
 
 def trainings(report: dict, path: tuple[str, ...] = ()):
