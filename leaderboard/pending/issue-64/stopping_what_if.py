@@ -25,7 +25,8 @@ are what the rule itself sees. Each training is replayed on its own: a Phase 1 s
 sooner would hand the trainings built on it another model, which no replay can follow,
 so the savings add up the trainings as the refit ran them.
 
-Run from the repository root: ``python leaderboard/pending/issue-64/stopping_what_if.py``.
+Run from the repository root, with kkl-bench installed: ``python
+leaderboard/pending/issue-64/stopping_what_if.py``.
 """
 
 from __future__ import annotations
@@ -36,24 +37,20 @@ import statistics
 import sys
 from pathlib import Path
 
+from kkl_bench.support.convergence import trainings
+
 RESULTS = Path(__file__).parent / "results"
 HALVINGS = (0, 1, 2, 3, 4)
 
 
-def trainings(report: dict, path: tuple[str, ...] = ()):
-    """(path, record) of every training in a fit report (a record has a validation curve)."""
-    if "validation_curve" in report:
-        yield ".".join(path), report
-    for key, value in report.items():
-        if isinstance(value, dict):
-            yield from trainings(value, (*path, key))
-
-
 def seconds_per_step(report: dict, path: str) -> float:
-    """Processor seconds per optimizer step of the training at ``path`` of ``report``."""
-    spent = report["spent"]["phase1"] if path.startswith("phase1_log") else None
-    if spent is None:
-        spent = report.get(path.split(".")[0], {}).get("spent") or report["spent"].get("phase2")
+    """Processor seconds per optimizer step of the training at ``path`` of ``report``: its
+    phase's ``spent`` (Phase 1's for its encoder and decoder; the training log's own, or
+    Phase 2's, for the others)."""
+    if path.startswith("phase1_log"):
+        spent = report["spent"]["phase1"]
+    else:
+        spent = report[path.split(".")[0]].get("spent") or report["spent"].get("phase2")
     return spent["processor_seconds"] / spent["steps"] if spent and spent["steps"] else math.nan
 
 
