@@ -1,5 +1,6 @@
-"""Filter kernels bound to a model's functions are compiled once per machine
-(kkl_bench.support.kernel_cache): the same results, and the next process loads them."""
+"""Filter kernels bound to a model's functions are compiled once per machine, and a
+kernel bound once is compiled once for every model (kkl_bench.support.kernel_cache): the
+same results, and the next process loads them."""
 
 import functools
 import subprocess
@@ -27,14 +28,32 @@ step(model.p, model.g, x, np.array([0.1, -0.3]), 0.05, out, work)
 print(sum(step.stats.cache_hits.values()), *out.ravel())
 """
 
+STEP_BOUND_ONCE = """
+import numpy as np
+from kkl_bench.support import kernel_cache
+from kkl_bench.protocol import compiled
+from kkl_bench.registry import systems
+
+model = systems.get("vdp")().compiled()
+x = np.array([[0.5, -1.0], [0.25, 2.0]])
+out, work = np.empty_like(x), np.empty((5, *x.shape))
+kernel_cache.bind_once(compiled.rk4_step, model.drift)(model.p, model.g, x, np.array([0.1, -0.3]), 0.05, out, work)
+print(sum(kernel_cache._shared(compiled.rk4_step).stats.cache_hits.values()), *out.ravel())
+"""
+
 
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
     """An empty cache for this test, and no kernel bound in this process yet."""
     monkeypatch.setenv("KKL_BENCH_CACHE", str(tmp_path))
-    kernel_cache._bound.cache_clear()
+    clear()
     yield tmp_path
-    kernel_cache._bound.cache_clear()
+    clear()
+
+
+def clear():
+    for memo in (kernel_cache._bound, kernel_cache._shared, kernel_cache._entry_point):
+        memo.cache_clear()
 
 
 def step_inputs():
@@ -52,10 +71,11 @@ def test_a_bound_kernel_computes_what_the_kernel_does(cache):
     assert len(list((cache / kernel_cache.FOLDER).glob("rk4_step_*.py"))) == 1
 
 
-def test_the_next_process_loads_the_bound_kernel_from_the_cache(cache):
+@pytest.mark.parametrize("script", [BOUND_STEP, STEP_BOUND_ONCE], ids=["bind", "bind_once"])
+def test_the_next_process_loads_the_kernel_from_the_cache(cache, script):
     runs = [
         subprocess.run(
-            [sys.executable, "-c", BOUND_STEP], capture_output=True, text=True, check=True
+            [sys.executable, "-c", script], capture_output=True, text=True, check=True
         ).stdout.split()
         for _ in range(2)
     ]
@@ -94,3 +114,45 @@ def test_a_change_anywhere_in_a_plugins_package_is_new_code(tmp_path, monkeypatc
     assert kernel_cache.defining_code_digest(names[:1]) != before  # the package alone
     (package / "helpers.py").write_text("gain = 2.0\n")  # a helper, not the function's file
     assert kernel_cache.defining_code_digest(names) != before
+
+
+def test_a_kernel_bound_once_computes_what_the_kernel_does_for_every_model(cache):
+    x, u, dt, out, work = step_inputs()
+    for name in ("duffing", "vdp"):
+        model = systems.get(name)().compiled()
+        kernel_cache.bind_once(compiled.rk4_step, model.drift)(
+            model.p, model.g, x, u, dt, out, work
+        )
+        expected = np.empty_like(x)
+        compiled.rk4_step(model.drift, model.p, model.g, x, u, dt, expected, work)
+        np.testing.assert_array_equal(out, expected)
+    assert len(kernel_cache._shared(compiled.rk4_step).signatures) == 1  # one compilation
+    assert len(list((cache / kernel_cache.FOLDER).glob("rk4_step_*.py"))) == 1
+
+
+def test_a_closure_is_a_function_value_like_any_other(cache):
+    @numba.njit
+    def drift(x, p, out):  # a plugin's closure: bind cannot name it, bind_once need not
+        out[:] = -x
+
+    x, u, dt, out, work = step_inputs()
+    kernel_cache.bind_once(compiled.rk4_step, drift)(np.zeros(0), np.zeros(2), x, u, dt, out, work)
+    expected = np.empty_like(x)
+    compiled.rk4_step(drift, np.zeros(0), np.zeros(2), x, u, dt, expected, work)
+    np.testing.assert_array_equal(out, expected)
+
+
+def test_a_kernel_that_cannot_be_imported_by_name_is_refused(cache):
+    @numba.njit
+    def kernel(drift, x, out):
+        drift(x, np.zeros(0), out)
+
+    with pytest.raises(ValueError, match=r"kernel .*cannot be imported by name"):
+        kernel_cache.bind_once(kernel, compiled.no_constraint)
+
+
+def test_a_kernel_parameter_that_is_no_model_function_is_named(cache):
+    with pytest.raises(
+        ValueError, match=r"\['x'\] are not a compiled model's functions; valid: drift"
+    ):
+        kernel_cache.bind_once(compiled.matrix_column, compiled.no_constraint)

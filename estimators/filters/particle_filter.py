@@ -67,7 +67,7 @@ from kkl_bench.fitting.calibration import CalibratesOnLoggedData
 from kkl_bench.protocol.simulate import rk4_step
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import estimators
-from kkl_bench.support.kernel_cache import bind
+from kkl_bench.support.kernel_cache import bind_once
 
 PROPOSALS = ("optimal", "bootstrap")
 
@@ -247,7 +247,7 @@ class ParticleFilter(TwoEngines, CalibratesOnLoggedData, Estimator):
         law, constants = particle_kernels.noise_law_constants(measurement.noise)
         y, u = self.kernel_inputs(y, u)
         x_hat = np.full((batch, steps, model.n_x), np.nan)
-        run = bind(
+        run = bind_once(
             particle_kernels.filter_trajectory, model.drift, model.output,
             model.output_jacobian, model.sense, model.sense_slope, model.constrain,
         )  # fmt: skip

@@ -13,6 +13,8 @@ estimates agree to rounding (``tests/test_filter_engines.py``). Every scratch ar
 allocated once a call; the particles stay in the model functions' layout ``(n_x, n)``
 from step to step; the sensor's Jacobian is evaluated once where it is the same at every
 point (:attr:`~kkl_bench.protocol.compiled.CompiledModel.constant_output_jacobian`).
+The model's functions come in as first-class function values, so the kernel is compiled
+once for every system and sensor (:func:`kkl_bench.support.kernel_cache.bind_once`).
 """
 
 from __future__ import annotations
@@ -256,7 +258,7 @@ def _resample(weights, offset, cumulative, particles, out):
             out[k, i] = particles[k, chosen]
 
 
-@numba.njit(error_model="numpy")  # disk-cached once bound to a model: kernel_cache.bind
+@numba.njit(error_model="numpy")  # disk-cached, one for every model: kernel_cache.bind_once
 def filter_trajectory(
     drift, output, output_jacobian, sense, sense_slope, constrain, p, q_output, s, g, rng,
     particles, log_weights, u, dt, y, present, proposing, all_present, q, components,
@@ -299,6 +301,7 @@ def filter_trajectory(
     outputs, slopes = np.empty((n_y, n_particles)), np.empty((n_y, n_particles))
     innovations, residual = np.empty((n_y, n_particles)), np.empty((n_y, n_particles))
     jacobians = np.empty((n_y, n, columns))
+    first_point, first_output, first_slope = np.empty((n, 1)), np.empty((n_y, 1)), np.empty((n_y, 1))  # fmt: skip
     w, v, transition = np.empty((n, n_particles)), np.empty((n_y, n_particles)), np.empty((n, n_particles))  # fmt: skip
     uniform, process, offset = np.empty(n_particles), np.empty((n, n_particles)), np.empty((n, n_particles))  # fmt: skip
     Hs, H, H_used = np.empty((n_y, n, columns)), np.empty((n_y, n)), np.full((n_y, n), np.nan)
@@ -332,7 +335,9 @@ def filter_trajectory(
                 if not constant_jacobian:
                     _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means, outputs, slopes, jacobians)  # fmt: skip
                 elif math.isnan(H_used[0, 0]):  # the one Jacobian, at the first particle
-                    _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, means[:, :1], outputs[:, :1], slopes[:, :1], jacobians[:, :, :1])  # fmt: skip
+                    for j in range(n):  # a copy: the model's functions take C-contiguous arrays
+                        first_point[j, 0] = means[j, 0]
+                    _sensed_output_jacobian(output, output_jacobian, sense_slope, q_output, s, first_point, first_output, first_slope, jacobians)  # fmt: skip
                 for i in range(columns):  # a new Jacobian: its proposal's matrices
                     changed = False
                     for a in range(n_y):

@@ -28,6 +28,31 @@ from typing import Any
 import numba
 import numpy as np
 
+_VECTOR, _SWEEP, _JACOBIANS = (  # C-contiguous float64: (k,), (n, m), (n_y, n_x, m)
+    numba.types.float64[::1],
+    numba.types.float64[:, ::1],
+    numba.types.float64[:, :, ::1],
+)
+
+
+def _returning_nothing(*arguments) -> numba.types.FunctionType:
+    return numba.types.FunctionType(numba.types.void(*arguments))
+
+
+FUNCTION_TYPES = {
+    "drift": _returning_nothing(_SWEEP, _VECTOR, _SWEEP),
+    "drift_jacobian": _returning_nothing(_SWEEP, _VECTOR, _JACOBIANS),
+    "output": _returning_nothing(_SWEEP, _VECTOR, _SWEEP),
+    "output_jacobian": _returning_nothing(_SWEEP, _VECTOR, _JACOBIANS),
+    "sense": _returning_nothing(_SWEEP, _VECTOR),
+    "sense_slope": _returning_nothing(_SWEEP, _VECTOR, _SWEEP),
+    "constrain": _returning_nothing(_SWEEP, _VECTOR),
+}
+"""numba's first-class type of each :class:`CompiledModel` function, by its name: its
+arrays C-contiguous float64 (the sweeps, the Jacobians, the parameters), nothing
+returned. A kernel that takes the functions as values of these types
+(:func:`kkl_bench.support.kernel_cache.bind_once`) is compiled once for every model."""
+
 
 @dataclass(frozen=True)
 class CompiledModel:

@@ -9,7 +9,9 @@ disk: every process paid the compilation again (20-80 s a specialization, most o
 the kernel with the functions named as globals, and compiles it with numba's on-disk
 cache (:func:`kkl_bench.support.cache.import_generated`, the cache's ``bound_kernels/``): the
 next process loads the machine code instead. The kernel is the same, so are its
-estimates.
+estimates. :func:`bind_once` compiles a kernel once for every model instead, the
+functions passed as first-class function values: the particle filter's, whose every call
+of a model function sweeps its thousands of particles.
 
 numba's cache of a function checks the function's own file, not the code it calls, so
 the module's source carries a digest of this package's code, of the packages that define
@@ -29,6 +31,7 @@ from pathlib import Path
 
 import numba
 
+from kkl_bench.protocol.compiled import FUNCTION_TYPES
 from kkl_bench.support.cache import code_digest, default_cache_dir, import_generated
 
 FOLDER = "bound_kernels"
@@ -73,12 +76,68 @@ def defining_code_digest(names: list[str]) -> str:
     return digest.hexdigest()[:16]
 
 
+def bind_once(kernel, *functions) -> Callable:
+    """``kernel`` (a numba dispatcher) with ``functions`` (a compiled model's numba
+    dispatchers, named by the kernel's first parameters as in
+    :data:`~kkl_bench.protocol.compiled.FUNCTION_TYPES`) as its first arguments, compiled
+    once for every model: the functions are passed as first-class function values,
+    called through their address, so the kernel's machine code does not depend on them.
+    It is compiled with numba's on-disk cache, as :func:`bind`'s kernels are, and a new
+    system or sensor costs only the compilation of its own functions. Call it with the
+    kernel's other arguments.
+
+    The price is an indirect call for each call of a model function, which numba cannot
+    inline into the kernel: small beside a call that sweeps thousands of points (the
+    particle filter's), not beside a step of a few hundred operations (the EKF's, the
+    UKF's, the EnKF's: :func:`bind`; protocol 6.3 gives the measurements)."""
+    parameters = list(inspect.signature(kernel.py_func).parameters)[: len(functions)]
+    unknown = [name for name in parameters if name not in FUNCTION_TYPES]
+    if unknown:
+        raise ValueError(
+            f"bind_once: {kernel.py_func.__qualname__}'s parameters {unknown} are not a "
+            f"compiled model's functions; valid: {', '.join(FUNCTION_TYPES)}"
+        )
+    function_types = tuple(FUNCTION_TYPES[name] for name in parameters)
+    shared = _shared(kernel)
+
+    def call(*rest):
+        argument_types = (*function_types, *(numba.typeof(value) for value in rest))
+        return _entry_point(shared, argument_types)(*functions, *rest)
+
+    return call
+
+
 @functools.cache
 def _bound(kernel, functions: tuple) -> Callable:
     names = [_global_name(function) for function in (kernel, *functions)]
     if None in names:
         return functools.partial(kernel, *functions)
     rest = list(inspect.signature(kernel.py_func).parameters)[len(functions) :]
+    return _generated(kernel, names, rest).kernel
+
+
+@functools.cache
+def _shared(kernel):
+    name = _global_name(kernel)
+    if name is None:
+        raise ValueError(
+            f"bind_once: the kernel {kernel.py_func.__qualname__} cannot be imported by "
+            "name; define it at the top level of a module"
+        )
+    return _generated(kernel, [name], list(inspect.signature(kernel.py_func).parameters)).kernel
+
+
+@functools.cache
+def _entry_point(shared, argument_types: tuple) -> Callable:
+    """The machine code of ``shared`` for ``argument_types`` (loaded from numba's cache
+    where it is there), called without the dispatcher's search for a match."""
+    return shared.compile(argument_types)
+
+
+def _generated(kernel, names: list[str], parameters: list[str]):
+    """A generated module whose ``kernel(*parameters)`` calls ``names[0]`` (``kernel``) with
+    the functions ``names[1:]`` and ``parameters``, compiled with numba's on-disk cache and
+    the kernel's own options."""
     modules = sorted({name.rpartition(".")[0] for name in names})
     options = "".join(  # the kernel's own, e.g. error_model="numpy"
         f", {key}={value!r}"
@@ -86,9 +145,10 @@ def _bound(kernel, functions: tuple) -> Callable:
         if key in ("error_model", "fastmath")
     )
     code = f"{code_digest()}-{defining_code_digest(names)}-numba{numba.__version__}"
+    purpose = "bound to its model" if len(names) > 1 else "for every model"
     source = "\n".join(
         [
-            f'"""{names[0]} bound to its model (kkl_bench.support.kernel_cache; code {code})."""',
+            f'"""{names[0]} {purpose} (kkl_bench.support.kernel_cache; code {code})."""',
             "",
             "import numba",
             "",
@@ -96,10 +156,9 @@ def _bound(kernel, functions: tuple) -> Callable:
             "",
             "",
             f"@numba.njit(cache=True{options})",
-            f"def kernel({', '.join(rest)}):",
-            f"    return {names[0]}({', '.join([*names[1:], *rest])})",
+            f"def kernel({', '.join(parameters)}):",
+            f"    return {names[0]}({', '.join([*names[1:], *parameters])})",
             "",
         ]
     )
-    folder = default_cache_dir() / FOLDER
-    return import_generated(source, folder, kernel.py_func.__name__).kernel
+    return import_generated(source, default_cache_dir() / FOLDER, kernel.py_func.__name__)
