@@ -58,6 +58,10 @@ returned. A kernel that takes the functions as values of these types
 class CompiledModel:
     """One system's model, read through a sensor, as numba functions.
 
+    Each function writes its result into its last argument (or in place), takes and
+    writes C-contiguous float64 arrays and returns nothing: the types of
+    :data:`FUNCTION_TYPES`, as which the particle filter's kernel receives them.
+
     Attributes
     ----------
     drift: ``drift(x, p, out)``: ``out (n_x, m) = f(x)`` at each of the ``m`` points of
