@@ -138,7 +138,8 @@ class System(ABC):
 
     def compiled(self) -> CompiledModel | None:
         """The model as numba functions that sweep over points (``x: (n_x, m)``, the points
-        on the last axis; :class:`kkl_bench.protocol.compiled.CompiledModel` gives each
+        on the last axis; each writes its result into its last argument or in place and
+        returns nothing; :class:`kkl_bench.protocol.compiled.CompiledModel` gives each
         one's signature), what the filters' compiled engine runs; None (the default) if the
         system offers none, and the filters then run their reference engine."""
         return None
