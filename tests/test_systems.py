@@ -1,5 +1,8 @@
 """The systems beyond the paper's: outputs, torch evaluation, known behaviour."""
 
+from dataclasses import replace
+
+import numba
 import numpy as np
 import pytest
 import torch
@@ -151,3 +154,26 @@ def test_the_system_checks_name_a_wrong_jacobian_and_a_numpy_only_drift():
     assert "f_jacobian differs from finite differences" in str(failures["check_f_jacobian"])
     assert "f fails on a torch tensor" in str(failures["check_evaluates_torch_tensors"])
     assert failures["check_h_jacobian"] is None and failures["check_shapes"] is None
+
+
+def test_the_system_checks_name_a_compiled_model_that_is_not_the_systems():
+    vdp, duffing = systems.get("vdp"), systems.get("duffing")()
+
+    @numba.njit
+    def returning(x, p, out):  # returns its output: not of the type the kernels take
+        out[:] = x
+        return out
+
+    class Returning(vdp):
+        def compiled(self):
+            return replace(super().compiled(), drift=returning)
+
+    class Another(vdp):
+        def compiled(self):
+            model = super().compiled()
+            return replace(model, drift=duffing.compiled().drift, p=duffing.compiled().p)
+
+    failure = dict(run_system_checks(Returning()))["check_compiled_model"]
+    assert "compiled().drift does not compile as" in str(failure)
+    failure = dict(run_system_checks(Another()))["check_compiled_model"]
+    assert "compiled().drift differs from the system's" in str(failure)

@@ -4,9 +4,10 @@ A system is what every estimator and the simulator read: the checks ask of it wh
 rely on. Its declared attributes have the right shapes (``g``, the x0 box); ``f``, ``h``
 and their Jacobians keep leading batch axes; the analytic Jacobians agree with central
 finite differences at points of the x0 box; ``f`` and ``h`` evaluate torch tensors as
-they do numpy arrays, differentiably (the learned estimators train through them); and
+they do numpy arrays, differentiably (the learned estimators train through them);
 trajectories from the x0 box under the paper's four regimes stay finite over the
-protocol's horizon.
+protocol's horizon; and a compiled model, where the system offers one, computes what the
+system computes.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from kkl_bench.protocol import DT, N_SAMPLES
+from kkl_bench.protocol.compiled import FUNCTION_TYPES
 from kkl_bench.protocol.simulate import simulate
 from kkl_bench.protocol.system import System
 from kkl_bench.registry import regimes, systems
@@ -133,6 +135,50 @@ class SystemConformance(NamedChecks):
                 f"under the {regime!r} regime the trajectory from x0 = "
                 f"{x0[~finite][0].tolist()} leaves the finite numbers within the horizon"
             )
+
+    def check_compiled_model(self) -> None:
+        """Where the system offers a compiled model (:meth:`System.compiled`, what the
+        filters' compiled engines run), each of its functions compiles as the type
+        :data:`~kkl_bench.protocol.compiled.FUNCTION_TYPES` gives it (C-contiguous float64
+        arrays, nothing returned), and its drift, output, their Jacobians and its constraint
+        compute what ``f``, ``h``, their Jacobians and ``constrain`` compute at the kit's
+        points. A system without one passes: the filters run their reference engine."""
+        model = self.system.compiled()
+        if model is None:
+            return
+        for name, function_type in FUNCTION_TYPES.items():
+            try:
+                getattr(model, name).compile(function_type.signature)
+            except Exception as error:
+                first_line = str(error).strip().split("\n")[0]
+                raise AssertionError(
+                    f"compiled().{name} does not compile as {function_type.signature} "
+                    f"({type(error).__name__}: {first_line})"
+                ) from error
+        system, n_x, n_y = self.system, self.n_x, self.system.n_y
+        assert model.n_y == n_y, f"compiled().n_y is {model.n_y}, the system's n_y {n_y}"
+        np.testing.assert_array_equal(model.g, system.g, err_msg="compiled().g is not g")
+        points = np.ascontiguousarray(self.points.T)  # the sweep: (n_x, m)
+        m = points.shape[1]
+        swept = {
+            "drift": (model.p, (n_x, m), system.f),
+            "drift_jacobian": (model.p, (n_x, n_x, m), system.f_jacobian),
+            "output": (model.q, (n_y, m), system.h),
+            "output_jacobian": (model.q, (n_y, n_x, m), system.h_jacobian),
+        }
+        for name, (parameters, shape, expected) in swept.items():
+            out = np.full(shape, np.nan)
+            getattr(model, name)(points, parameters, out)
+            np.testing.assert_allclose(
+                np.moveaxis(out, -1, 0), expected(self.points), rtol=1e-10, atol=1e-12,
+                err_msg=f"compiled().{name} differs from the system's",
+            )  # fmt: skip
+        constrained = points.copy()
+        model.constrain(constrained, model.p)
+        np.testing.assert_allclose(
+            constrained.T, system.constrain(self.points), rtol=1e-12, atol=0,
+            err_msg="compiled().constrain differs from the system's constrain",
+        )  # fmt: skip
 
 
 def run_system_checks(system: str | System) -> Iterator[tuple[str, BaseException | None]]:
