@@ -11,10 +11,10 @@ functions as first-class values) against the kernel bound to each model
   compilation included (the kernel again for ``bind``, only Van der Pol's functions for
   ``bind_once``).
 - ``test_estimate``: a row's estimate of a quick sinusoid cell's 5 test trajectories with
-  each binding in turn, its kernels compiled before timing: what the indirect calls cost. The board's
-  ``particle_filter`` (10000 particles) on Duffing, which binds once; the compiled EKF
-  and UKF on Chua (three states, the generic kernels: its drift does not trace) and the
-  EKF on Lorenz-96 n = 20, which keep a kernel per model.
+  each binding in turn, its kernels compiled before timing: what the indirect calls
+  cost. The board's ``particle_filter`` (10000 particles) on Duffing, which binds once;
+  the compiled EKF and UKF on Chua (three states, the generic kernels: its drift does
+  not trace) and the EKF on Lorenz-96 n = 20, which keep a kernel per model.
 """
 
 import os
@@ -37,7 +37,7 @@ BINDINGS = ("bind", "bind_once")
 TWO_SYSTEMS = """
 import sys, time
 from kkl_bench import variants
-from kkl_bench.estimators.filters import ekf, particle_filter, ukf
+from kkl_bench.estimators.filters import particle_filter
 from kkl_bench.run.spec import RunSpec, fit_context_for_row
 from kkl_bench.suite.task import Task, get_profile, make_test_set
 from kkl_bench.support import kernel_cache
