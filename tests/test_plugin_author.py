@@ -80,6 +80,7 @@ WRITTEN_AS_TEXT = ("README.md", "index.html", "standard.csv", "standard.tex", CO
 """Published files whose bytes are the same on every machine (a figure's are not)."""
 
 
+@pytest.mark.slow  # a whole `standard` profile on Duffing and two publications of the board
 @pytest.mark.skipif(not (BOARD / MANIFEST).exists(), reason="no committed board in this checkout")
 def test_a_plugin_row_reaches_a_copy_of_the_board_without_harming_it(installed, tmp_path):
     listed = kkl_bench(installed, "list", cwd=tmp_path)
