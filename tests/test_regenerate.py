@@ -488,3 +488,88 @@ def test_a_job_scoring_many_tasks_keeps_a_meter_of_its_own(tmp_path):
     with ledger.metered(tmp_path, first), ledger.metered(tmp_path, second):
         assert len(list(tmp_path.glob(f"{ledger.METER_FOLDER}/*/*.json"))) == 2
     assert ledger.interrupted_times(tmp_path, first) == {"seconds": 0.0, "wall_seconds": 0.0}
+
+
+@pytest.fixture
+def at_commit(monkeypatch):
+    """Set the commit that provenance reports (cells, ledger jobs and --redo read it)."""
+    from kkl_bench.support import provenance as module
+
+    recorded = module._static_provenance()
+
+    def set_commit(commit):
+        monkeypatch.setattr(
+            module, "_static_provenance", lambda: {**recorded, "git_commit": commit}
+        )
+
+    return set_commit
+
+
+def test_a_redo_makes_a_row_s_cells_of_another_commit_again_and_keeps_their_jobs_apart(
+    published, tmp_path, at_commit
+):
+    into, source = tmp_path / "into", load_results(published)
+    at_commit("0000000000a1")
+    regenerate.run(regenerate.plan(source, PROFILE, into, tmp_path / "c"), into)
+    ekf_cells = sorted((into / "quick" / "ekf").rglob("*.json"))
+    assert len(ekf_cells) == 3
+
+    at_commit("0000000000b2")  # the EKF's training changed
+    dry = regenerate.redo(source, PROFILE, into, ["ekf"], "a new cap", dry_run=True)
+    assert sorted(dry.cells) == ekf_cells and len(dry.jobs) == 1
+    assert "--redo ekf would make 3 cells again (those not written at 0000000000b2)" in (
+        dry.describe()
+    )
+    assert (
+        all(path.exists() for path in ekf_cells)
+        and ledger.read_ledger(into).get("superseded") is None
+    )
+
+    done = regenerate.redo(source, PROFILE, into, ["ekf"], "a new cap")
+    assert done.jobs == dry.jobs and not any(path.exists() for path in ekf_cells)
+    written = ledger.read_ledger(into)
+    (superseded,) = written["superseded"]
+    assert superseded["key"] == dry.jobs[0] and superseded["because"] == "a new cap"
+    assert superseded["cells"] == 3 and list(written["jobs"]) == [
+        key for key in written["jobs"] if key.startswith("ukf ")
+    ]
+
+    resumed = regenerate.plan(source, PROFILE, into, tmp_path / "c")
+    assert [(p.job.estimator, len(p.job.tasks)) for p in resumed.jobs] == [("ekf", 3)]
+    assert resumed.done == 2
+    regenerate.run(resumed, into)
+    again = regenerate.redo(source, PROFILE, into, ["ekf"], "a new cap")
+    assert again.cells == () and again.jobs == ()  # what this commit made stays
+
+    summary = ledger.ledger_summary(ledger.read_ledger(into))
+    assert summary["jobs"] == 2 and summary["cells"] == 5
+    assert summary["commits"] == ["0000000000a1", "0000000000b2"]
+    assert summary["superseded"]["jobs"] == 1 and summary["superseded"]["because"] == ["a new cap"]
+    assert summary["superseded"]["core_hours"] == superseded["seconds"] / 3600
+    assert "Besides, 1 earlier jobs took 0.0 core-hours whose cells were made again at a " in (
+        regeneration_sentence(summary, 5)
+    )
+    assert regeneration_sentence(summary, 5).endswith("later commit (a new cap).")
+
+
+def test_a_redo_refuses_uncommitted_code_and_a_folder_no_regeneration_wrote(
+    published, tmp_path, at_commit
+):
+    source = load_results(published)
+    at_commit("0000000000b2-dirty")
+    with pytest.raises(
+        ValueError, match="the code must be a clean commit; it is 0000000000b2-dirty"
+    ):
+        regenerate.redo(source, PROFILE, published, ["ekf"], "why")
+    at_commit("0000000000b2")
+    with pytest.raises(ValueError, match="holds no ledger of a regeneration"):
+        regenerate.redo(source, PROFILE, published, ["ekf"], "why")
+    ledger.record_job(tmp_path, "ekf duffing seed0 [duffing/zero@v1]", {"seconds": 1.0}, 1.0, 1, 0)
+    with pytest.raises(ValueError, match="hold no estimator 'enkf'; valid: ekf, ukf"):
+        regenerate.redo(source, PROFILE, tmp_path, ["enkf"], "why")
+
+
+def test_redo_and_because_go_together(published, tmp_path, capsys):
+    argv = ["regenerate", "--from", str(published), "--into", str(tmp_path), "--profile", "quick"]
+    assert main([*argv, "--redo", "ekf", "--dry-run"]) == 2
+    assert "--redo ROW... and --because TEXT go together" in capsys.readouterr().err

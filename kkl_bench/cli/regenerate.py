@@ -50,7 +50,22 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
     parser.add_argument("--track", nargs="+", metavar="NAME", help="tracks (default: all)")
     parser.add_argument("--system", nargs="+", metavar="NAME", help="systems (default: all)")
     parser.add_argument(
-        "--dry-run", action="store_true", help="print the plan and its estimate, run nothing"
+        "--redo",
+        nargs="+",
+        metavar="ROW",
+        help="after a committed change of these rows' training: make their cells of the "
+        "selection again where --into holds them from another commit (their ledger jobs are "
+        "kept apart, with --because); cells made at this commit stay, so it resumes too",
+    )
+    parser.add_argument(
+        "--because",
+        metavar="TEXT",
+        help="with --redo (required): why the cells are made again, which the board states",
+    )
+    parser.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the plan and its estimate (and what --redo would remove), change nothing",
     )
     add_cache_argument(parser)
     add_jobs_argument(
@@ -84,11 +99,18 @@ def regenerate_command(args: argparse.Namespace) -> int:
             f"--into {args.into} is the source folder: regenerate into another folder, then "
             "publish from it"
         )
+    if bool(args.redo) != bool(args.because):
+        raise ValueError("--redo ROW... and --because TEXT go together: name the rows and why")
     profile = get_profile(args.profile)
     device_before_work(args)
     source = regenerate.select(load_results(args.source), args.estimator, args.track, args.system)
     if source.empty:
         raise ValueError(f"{args.source} holds no cells of the selection")
+    if args.redo:
+        redone = regenerate.redo(
+            source, profile, args.into, args.redo, args.because, dry_run=args.dry_run
+        )
+        print(redone.describe())
     commit = provenance()["git_commit"]
     if commit is None or commit.endswith("-dirty"):
         print(

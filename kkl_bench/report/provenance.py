@@ -256,7 +256,20 @@ def regeneration_sentence(summary: dict | None, cells: int) -> str:
         f"core-hours** measured (processor time, one thread a job{on_gpu}; "
         f"{summary['estimated_core_hours']:.1f} estimated beforehand), "
         f"at commit{'s' if len(summary['commits']) > 1 else ''} {commits}, the jobs "
-        f"finishing between {summary['from']} and {summary['to']}."
+        f"finishing between {summary['from']} and {summary['to']}.{_superseded(summary)}"
+    )
+
+
+def _superseded(summary: dict) -> str:
+    """The sentence on the jobs whose cells a regeneration made again (``kkl-bench
+    regenerate --redo``), with the reasons they were given; empty if none."""
+    superseded = summary.get("superseded", {})
+    if not superseded.get("jobs"):
+        return ""
+    return (
+        f" Besides, {superseded['jobs']} earlier jobs took "
+        f"{superseded['core_hours']:.1f} core-hours whose cells were made again at a later "
+        f"commit ({'; '.join(superseded['because'])})."
     )
 
 

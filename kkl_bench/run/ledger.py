@@ -42,7 +42,9 @@ def read_ledger(folder: Path) -> dict[str, Any]:
     ``jobs``: key -> ``{seconds, wall_seconds, estimate_s, cells, failed, device,
     git_commit, finished_at}`` (``seconds``: processor time; ``device``: the device its
     torch estimators were given, ``cpu`` or ``cuda``, absent in ledgers from before it was
-    recorded, whose jobs ran on the CPU)."""
+    recorded, whose jobs ran on the CPU); and, once a regeneration made some cells again
+    (:func:`supersede`), ``superseded``: the records of the jobs that had made them, each
+    with its ``key``, ``because`` and ``superseded_at``."""
     path = Path(folder) / LEDGER_FILE
     if not path.exists():
         return {"jobs": {}}
@@ -78,6 +80,22 @@ def record_job(
             "git_commit": commit,
             "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
+        _write_atomically(Path(into) / LEDGER_FILE, ledger)
+
+
+def supersede(into: Path, keys: list[str], because: str) -> None:
+    """Move the jobs ``keys`` of the ledger in ``into`` to its ``superseded`` list, each
+    with ``because`` (why their cells are made again) and the time: what they spent stays
+    in the ledger, apart from the jobs whose cells the folder holds."""
+    if not keys:
+        return
+    with _ledger_lock(into):
+        ledger = read_ledger(into)
+        now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        ledger.setdefault("superseded", []).extend(
+            {"key": key, **ledger["jobs"].pop(key), "because": because, "superseded_at": now}
+            for key in keys
+        )
         _write_atomically(Path(into) / LEDGER_FILE, ledger)
 
 
@@ -208,12 +226,14 @@ def _killed_meters(folder: Path, key: str) -> Iterator[tuple[Path, dict[str, flo
 
 def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
     """What the board says of a regeneration: jobs, cells, core-hours measured, the jobs
-    that ran with a GPU, the commits that ran them, first and last finish; None without
-    one."""
+    that ran with a GPU, the commits that ran them, first and last finish, and the jobs
+    whose cells were made again (``superseded``: how many, their core-hours and why);
+    None without one."""
     jobs = ledger.get("jobs", {})
     if not jobs:
         return None
     finished = sorted(record["finished_at"] for record in jobs.values())
+    superseded = ledger.get("superseded", [])
     return {
         "jobs": len(jobs),
         "cells": sum(record["cells"] for record in jobs.values()),
@@ -223,4 +243,9 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
         "commits": sorted({str(record["git_commit"]) for record in jobs.values()}),
         "from": finished[0],
         "to": finished[-1],
+        "superseded": {
+            "jobs": len(superseded),
+            "core_hours": sum(record["seconds"] for record in superseded) / 3600,
+            "because": list(dict.fromkeys(record["because"] for record in superseded)),
+        },
     }

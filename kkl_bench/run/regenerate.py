@@ -39,18 +39,28 @@ from kkl_bench.protocol.streams import PAPER_TRACK
 from kkl_bench.run import harness
 from kkl_bench.run.harness import Job, JobOutcome, RunSpec
 from kkl_bench.run.ledger import (
+    LEDGER_FILE,
     interrupted_times,
     killed_attempts,
     metered,
     read_ledger,
     record_job,
     running_seconds,
+    supersede,
 )
-from kkl_bench.run.results import phase_seconds, scoring_seconds, trained_models
+from kkl_bench.run.results import (
+    cell_path,
+    estimate_path,
+    phase_seconds,
+    read_cell,
+    scoring_seconds,
+    trained_models,
+)
 from kkl_bench.suite.task import Profile, Task
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import execute
+from kkl_bench.support.provenance import provenance
 
 
 @dataclass(frozen=True)
@@ -281,16 +291,21 @@ def _row_of(key: str) -> str:
     return _parsed(key).group(1)
 
 
+def _system_of(key: str) -> str:
+    """The system of a ledger key (:func:`job_key`)."""
+    return _parsed(key).group(2)
+
+
 def _track_of(key: str) -> str:
     """The track of a ledger key's fit: its first task's (:attr:`Task.id`, ``track/system/
     regime@version``, the paper track's without the prefix)."""
-    first = _parsed(key).group(2).split(",")[0]
+    first = _parsed(key).group(3).split(",")[0]
     parts = first.split("/")
     return parts[0] if len(parts) == 3 else PAPER_TRACK
 
 
 def _parsed(key: str) -> re.Match:
-    matched = re.fullmatch(r"(.+) \S+ seed\d+ \[(.*)\]", key)
+    matched = re.fullmatch(r"(.+) (\S+) seed\d+ \[(.*)\]", key)
     if matched is None:
         raise ValueError(f"not a regeneration ledger key: {key!r}")
     return matched
@@ -475,6 +490,81 @@ def run(
         if progress is not None:
             progress(planned_job, outcome)
     return read_ledger(into)
+
+
+@dataclass(frozen=True)
+class Redo:
+    """What :func:`redo` made to be computed again in a regeneration's folder: the cell
+    files it removed and the ledger jobs it superseded (or would, in a dry run)."""
+
+    rows: tuple[str, ...]
+    cells: tuple[Path, ...]
+    jobs: tuple[str, ...]
+    commit: str
+    dry_run: bool = False
+
+    def describe(self) -> str:
+        verb = "would make" if self.dry_run else "makes"
+        return (
+            f"--redo {' '.join(self.rows)} {verb} {len(self.cells)} cells again (those not "
+            f"written at {self.commit}) and supersedes {len(self.jobs)} jobs of the ledger"
+        )
+
+
+def redo(
+    source: pd.DataFrame,
+    profile: Profile,
+    into: Path,
+    rows: Iterable[str],
+    because: str,
+    dry_run: bool = False,
+) -> Redo:
+    """Make ``rows``' cells of ``source`` (a selection, :func:`select`) again in ``into``
+    where the code at hand did not write them, after a change of those rows' training was
+    committed: each of their cell files in ``into`` that names another commit than today's
+    is removed, with its kept estimate, and the ledger's jobs of those rows, systems and
+    tracks that another commit ran are moved to its ``superseded`` list with ``because``
+    (:func:`~kkl_bench.run.ledger.supersede`), what they spent kept apart. Cells written at
+    today's commit stay, so a resumed redo removes nothing it made. With ``dry_run`` nothing
+    is removed. Raises ValueError if the code is not a clean commit, ``into`` holds no
+    regeneration's ledger, or a row is not in ``source``."""
+    commit = provenance()["git_commit"]
+    if commit is None or commit.endswith("-dirty"):
+        raise ValueError(
+            f"--redo makes cells again where another commit wrote them, so the code must be "
+            f"a clean commit; it is {commit}"
+        )
+    if not (Path(into) / LEDGER_FILE).exists():
+        raise ValueError(
+            f"{into} holds no ledger of a regeneration ({LEDGER_FILE}): --redo removes only "
+            "the cells a regeneration wrote"
+        )
+    rows = tuple(rows)
+    chosen = select(source, rows)
+    stale = []
+    for cell in chosen.itertuples():
+        path = cell_path(
+            into, cell.estimator, cell.system, cell.regime, profile.name, cell.seed, cell.track
+        )
+        if not path.exists():
+            continue
+        if read_cell(path).provenance.get("git_commit") != commit:
+            stale.append(path)
+    systems, tracks = set(chosen["system"]), set(chosen["track"])
+    jobs = [
+        key
+        for key, record in read_ledger(into)["jobs"].items()
+        if _row_of(key) in rows
+        and _system_of(key) in systems
+        and _track_of(key) in tracks
+        and record["git_commit"] != commit
+    ]
+    if not dry_run:
+        supersede(into, jobs, because)
+        for path in stale:
+            estimate_path(path).unlink(missing_ok=True)
+            path.unlink()
+    return Redo(rows, tuple(stale), tuple(jobs), commit, dry_run)
 
 
 def select(
