@@ -537,6 +537,9 @@ def test_a_redo_makes_a_row_s_cells_of_another_commit_again_and_keeps_their_jobs
     resumed = regenerate.plan(source, PROFILE, into, tmp_path / "c")
     assert [(p.job.estimator, len(p.job.tasks)) for p in resumed.jobs] == [("ekf", 3)]
     assert resumed.done == 2
+    taken = superseded["seconds"] / superseded["estimate_s"]  # priced at what it took before
+    assert resumed.jobs[0].rate == pytest.approx(taken)
+    assert f"all made again at the rate those took (ekf {taken:.2f})" in resumed.describe()
     regenerate.run(resumed, into)
     again = regenerate.redo(source, PROFILE, into, ["ekf"], "a new cap")
     assert again.cells == () and again.jobs == ()  # what this commit made stays

@@ -207,11 +207,14 @@ class MeasuredRates:
     jobs: int
     by_track: dict[tuple[str, str], float] = field(default_factory=dict)
     """``(row, track)``: the rate of that row's finished jobs of that track."""
+    superseded: dict[str, float] = field(default_factory=dict)
+    """The rows with no finished job but jobs superseded by a redo (:func:`redo`): the
+    rate those took, the best measure of the row's cost at hand."""
 
     def rate(self, row: str, track: str | None = None) -> float:
-        """``row``'s measured rate on ``track``, else its rate over every track; 1 (its
-        estimate) for a row with no finished job."""
-        return self.by_track.get((row, track), self.by_row.get(row, 1.0))
+        """``row``'s measured rate on ``track``, else its rate over every track, else that
+        of its superseded jobs; 1 (its estimate) for a row with none of those."""
+        return self.by_track.get((row, track), self.by_row.get(row, self.superseded.get(row, 1.0)))
 
     def describe(self, expected_s: float) -> str:
         rows = ", ".join(
@@ -220,10 +223,16 @@ class MeasuredRates:
         return (
             f"The {self.jobs} jobs finished in this folder took {self.overall:.2f} times "
             f"their estimates; per row: {rows}. With the training of each of those rows at "
-            f"its rate (on the job's track, where one of its jobs there finished) and the "
-            f"others at their estimates, the jobs left take about "
-            f"{expected_s / 3600:.1f} core-hours"
+            f"its rate (on the job's track, where one of its jobs there finished)"
+            f"{self._superseded()} and the others at their estimates, the jobs left take "
+            f"about {expected_s / 3600:.1f} core-hours"
         )
+
+    def _superseded(self) -> str:
+        if not self.superseded:
+            return ""
+        rows = ", ".join(f"{row} {rate:.2f}" for row, rate in self.superseded.items())
+        return f", the rows whose jobs were all made again at the rate those took ({rows}),"
 
     def _tracks_of(self, row: str) -> str:
         """`` (paper 1.98, hard 6.71)``: ``row``'s rate per track, where it has finished
@@ -263,7 +272,8 @@ class WorkDone:
 
 def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
     """The rates of the finished jobs of ``ledger`` (:func:`~kkl_bench.run.ledger.read_ledger`)
-    whose estimates are positive; None if there are none."""
+    whose estimates are positive, and of its superseded ones for the rows with no finished
+    job; None if there are no finished jobs."""
     seconds: dict[tuple[str, str], float] = defaultdict(float)
     estimated: dict[tuple[str, str], float] = defaultdict(float)
     jobs = 0
@@ -275,6 +285,14 @@ def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
             jobs += 1
     if not jobs:
         return None
+    replaced_seconds: dict[str, float] = defaultdict(float)
+    replaced_estimated: dict[str, float] = defaultdict(float)
+    for record in ledger.get("superseded", []):
+        row = _row_of(record["key"])
+        if record["estimate_s"] > 0 and not any(name == row for name, _ in seconds):
+            replaced_seconds[row] += record["seconds"]
+            replaced_estimated[row] += record["estimate_s"]
+    superseded = {row: replaced_seconds[row] / replaced_estimated[row] for row in replaced_seconds}
 
     def rate_of(pairs: Iterable[tuple[str, str]]) -> float:
         pairs = list(pairs)
@@ -283,7 +301,7 @@ def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
     rows = dict.fromkeys(row for row, _ in seconds)
     by_row = {row: rate_of(pair for pair in seconds if pair[0] == row) for row in rows}
     by_track = {pair: rate_of([pair]) for pair in seconds}
-    return MeasuredRates(by_row, rate_of(seconds), jobs, by_track)
+    return MeasuredRates(by_row, rate_of(seconds), jobs, by_track, superseded)
 
 
 def _row_of(key: str) -> str:
