@@ -18,7 +18,7 @@ from kkl_bench.run import ledger
 from kkl_bench.support.cache import default_cache_dir
 from kkl_bench.support.device_names import DEVICES
 from kkl_bench.support.executors import EXECUTORS
-from kkl_bench.support.provenance import provenance
+from kkl_bench.support.provenance import is_clean_commit, provenance
 
 
 def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
@@ -112,7 +112,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
         )
         print(redone.describe())
     commit = provenance()["git_commit"]
-    if commit is None or commit.endswith("-dirty"):
+    if not is_clean_commit(commit):
         print(
             f"kkl-bench: the code is not a clean commit ({commit}): a regenerated board "
             "should come from one",

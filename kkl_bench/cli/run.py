@@ -32,7 +32,7 @@ from kkl_bench.support import status
 from kkl_bench.support.cache import default_cache_dir
 from kkl_bench.support.device_names import DEVICES
 from kkl_bench.support.executors import EXECUTORS
-from kkl_bench.support.provenance import provenance
+from kkl_bench.support.provenance import is_clean_commit, provenance
 
 if TYPE_CHECKING:
     from kkl_bench.run import harness
@@ -147,7 +147,7 @@ def run_command(args: argparse.Namespace) -> int:
     args.profile_given = args.profile is not None
     device = device_before_work(args)
     commit = provenance()["git_commit"]
-    if commit is not None and commit.endswith("-dirty"):
+    if commit is not None and not is_clean_commit(commit):
         print(
             f"kkl-bench: the code has uncommitted changes ({commit}): the cells and any model "
             "trained now record a commit that does not hold the code that made them",

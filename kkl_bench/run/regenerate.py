@@ -60,7 +60,7 @@ from kkl_bench.suite.task import Profile, Task
 from kkl_bench.suite.tracks import get_track
 from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import execute
-from kkl_bench.support.provenance import provenance
+from kkl_bench.support.provenance import is_clean_commit, provenance
 
 
 @dataclass(frozen=True)
@@ -285,11 +285,12 @@ def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
             jobs += 1
     if not jobs:
         return None
+    rows = dict.fromkeys(row for row, _ in seconds)
     replaced_seconds: dict[str, float] = defaultdict(float)
     replaced_estimated: dict[str, float] = defaultdict(float)
     for record in ledger.get("superseded", []):
         row = _row_of(record["key"])
-        if record["estimate_s"] > 0 and not any(name == row for name, _ in seconds):
+        if record["estimate_s"] > 0 and row not in rows:
             replaced_seconds[row] += record["seconds"]
             replaced_estimated[row] += record["estimate_s"]
     superseded = {row: replaced_seconds[row] / replaced_estimated[row] for row in replaced_seconds}
@@ -298,7 +299,6 @@ def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
         pairs = list(pairs)
         return sum(seconds[pair] for pair in pairs) / sum(estimated[pair] for pair in pairs)
 
-    rows = dict.fromkeys(row for row, _ in seconds)
     by_row = {row: rate_of(pair for pair in seconds if pair[0] == row) for row in rows}
     by_track = {pair: rate_of([pair]) for pair in seconds}
     return MeasuredRates(by_row, rate_of(seconds), jobs, by_track, superseded)
@@ -547,7 +547,7 @@ def redo(
     is removed. Raises ValueError if the code is not a clean commit, ``into`` holds no
     regeneration's ledger, or a row is not in ``source``."""
     commit = provenance()["git_commit"]
-    if commit is None or commit.endswith("-dirty"):
+    if not is_clean_commit(commit):
         raise ValueError(
             f"--redo makes cells again where another commit wrote them, so the code must be "
             f"a clean commit; it is {commit}"

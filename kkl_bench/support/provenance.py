@@ -41,6 +41,12 @@ PUBLISHED = "leaderboard"
 make the code dirty (:func:`_git_commit`)."""
 
 
+def is_clean_commit(commit: str | None) -> bool:
+    """Whether ``commit`` (a provenance's ``git_commit``) names a commit that holds the code
+    as it ran: not None (outside a git checkout) and not ``-dirty``."""
+    return commit is not None and not commit.endswith("-dirty")
+
+
 def _git_commit(source: Path = PACKAGE) -> str | None:
     """The commit of the checkout holding ``source`` (this package), with ``-dirty`` if a
     tracked file outside :data:`PUBLISHED` is modified; None outside a git checkout."""
