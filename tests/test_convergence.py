@@ -63,3 +63,11 @@ def test_curves_are_found_with_the_path_that_leads_to_them():
         ("training_log", [[0, 3.0], [5, 2.5]]),
     ]
     assert convergence.curves({"spent": {}}) == []
+
+
+def test_a_fit_reached_its_cap_when_any_training_did():
+    capped = {"phase1_log": {"encoder": {"stopped": "plateau"}, "decoder": {"stopped": "cap"}}}
+    assert convergence.reached_cap(capped)
+    stopped = {"phase1_log": {"decoder": {"stopped": "plateau"}}, "spent": {"phase1": {}}}
+    assert not convergence.reached_cap(stopped)
+    assert not convergence.reached_cap({"training_log": {"stopped": "diverged"}})

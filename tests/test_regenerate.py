@@ -21,7 +21,7 @@ from kkl_bench.cli.run import following
 from kkl_bench.report.provenance import regeneration_sentence
 from kkl_bench.run import harness, ledger, regenerate
 from kkl_bench.run.harness import Job
-from kkl_bench.run.results import load_results, trained_models
+from kkl_bench.run.results import load_results, read_cell, trained_models, write_cell
 from kkl_bench.suite.task import Task, get_profile
 from tests.git_repo import commit_all, git
 
@@ -505,13 +505,20 @@ def at_commit(monkeypatch):
     return set_commit
 
 
-def test_a_redo_makes_a_row_s_cells_of_another_commit_again_and_keeps_their_jobs_apart(
-    published, tmp_path, at_commit
-):
+@pytest.fixture
+def regenerated(published, tmp_path, at_commit):
+    """The published cells regenerated into a folder at commit a1: the folder, the source
+    and the EKF's cell files."""
     into, source = tmp_path / "into", load_results(published)
     at_commit("0000000000a1")
     regenerate.run(regenerate.plan(source, PROFILE, into, tmp_path / "c"), into)
-    ekf_cells = sorted((into / "quick" / "ekf").rglob("*.json"))
+    return into, source, sorted((into / "quick" / "ekf").rglob("*.json"))
+
+
+def test_a_redo_makes_a_row_s_cells_of_another_commit_again_and_keeps_their_jobs_apart(
+    regenerated, tmp_path, at_commit
+):
+    into, source, ekf_cells = regenerated
     assert len(ekf_cells) == 3
 
     at_commit("0000000000b2")  # the EKF's training changed
@@ -555,6 +562,29 @@ def test_a_redo_makes_a_row_s_cells_of_another_commit_again_and_keeps_their_jobs
     assert regeneration_sentence(summary, 5).endswith("later commit (a new cap).")
 
 
+def test_a_capped_only_redo_makes_again_just_the_jobs_whose_fit_reached_a_cap(
+    regenerated, tmp_path, at_commit
+):
+    into, source, ekf_cells = regenerated
+    cell = read_cell(ekf_cells[0])
+    report = {"training_log": {"stopped": "cap", "steps": 16000}}
+    write_cell(into, replace(cell, fit_report=report))
+    before = {path: path.read_bytes() for path in into.rglob("*.json")}
+
+    at_commit("0000000000b2")  # a cap raised
+    done = regenerate.redo(source, PROFILE, into, ["ekf", "ukf"], "a cap", capped_only=True)
+    # the capped cell, and the other two cells of its job (one fit); the UKF's stay
+    assert sorted(done.cells) == ekf_cells and not any(path.exists() for path in ekf_cells)
+    assert [key.split()[0] for key in done.jobs] == ["ekf"]
+    assert "(those whose fit reached a cap and not written at 0000000000b2)" in done.describe()
+    assert all(path.read_bytes() == data for path, data in before.items() if "ukf" in path.parts)
+    assert list(ledger.read_ledger(into)["jobs"]) == [
+        key for key in ledger.read_ledger(into)["jobs"] if key.startswith("ukf ")
+    ]
+    resumed = regenerate.plan(source, PROFILE, into, tmp_path / "c")
+    assert [(p.job.estimator, len(p.job.tasks)) for p in resumed.jobs] == [("ekf", 3)]
+
+
 def test_a_redo_refuses_uncommitted_code_and_a_folder_no_regeneration_wrote(
     published, tmp_path, at_commit
 ):
@@ -576,3 +606,5 @@ def test_redo_and_because_go_together(published, tmp_path, capsys):
     argv = ["regenerate", "--from", str(published), "--into", str(tmp_path), "--profile", "quick"]
     assert main([*argv, "--redo", "ekf", "--dry-run"]) == 2
     assert "--redo ROW... and --because TEXT go together" in capsys.readouterr().err
+    assert main([*argv, "--capped-only", "--dry-run"]) == 2
+    assert "--capped-only narrows --redo ROW...: name the rows" in capsys.readouterr().err

@@ -58,6 +58,12 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
         "kept apart, with --because); cells made at this commit stay, so it resumes too",
     )
     parser.add_argument(
+        "--capped-only",
+        action="store_true",
+        help="with --redo: only the cells whose fit reached a cap of steps (after a cap was "
+        "raised; the fits the plateau rule stopped would come back bit for bit)",
+    )
+    parser.add_argument(
         "--because",
         metavar="TEXT",
         help="with --redo (required): why the cells are made again, which the board states",
@@ -101,6 +107,8 @@ def regenerate_command(args: argparse.Namespace) -> int:
         )
     if bool(args.redo) != bool(args.because):
         raise ValueError("--redo ROW... and --because TEXT go together: name the rows and why")
+    if args.capped_only and not args.redo:
+        raise ValueError("--capped-only narrows --redo ROW...: name the rows to make again")
     profile = get_profile(args.profile)
     device_before_work(args)
     source = regenerate.select(load_results(args.source), args.estimator, args.track, args.system)
@@ -108,7 +116,13 @@ def regenerate_command(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.source} holds no cells of the selection")
     if args.redo:
         redone = regenerate.redo(
-            source, profile, args.into, args.redo, args.because, dry_run=args.dry_run
+            source,
+            profile,
+            args.into,
+            args.redo,
+            args.because,
+            dry_run=args.dry_run,
+            capped_only=args.capped_only,
         )
         print(redone.describe())
     commit = provenance()["git_commit"]

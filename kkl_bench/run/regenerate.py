@@ -58,6 +58,7 @@ from kkl_bench.run.results import (
 )
 from kkl_bench.suite.task import Profile, Task
 from kkl_bench.suite.tracks import get_track
+from kkl_bench.support.convergence import reached_cap
 from kkl_bench.support.devices import resolve as resolve_device
 from kkl_bench.support.executors import execute
 from kkl_bench.support.provenance import is_clean_commit, provenance
@@ -309,21 +310,26 @@ def _row_of(key: str) -> str:
     return _parsed(key).group(1)
 
 
-def _system_of(key: str) -> str:
-    """The system of a ledger key (:func:`job_key`)."""
-    return _parsed(key).group(2)
+def _row_system_seed(key: str) -> tuple[str, str, int]:
+    """The row, system and seed of a ledger key (:func:`job_key`)."""
+    matched = _parsed(key)
+    return matched.group(1), matched.group(2), int(matched.group(3))
+
+
+def _tasks_of(key: str) -> list[str]:
+    """The task ids of a ledger key's fit (:attr:`Task.id`)."""
+    return _parsed(key).group(4).split(",")
 
 
 def _track_of(key: str) -> str:
     """The track of a ledger key's fit: its first task's (:attr:`Task.id`, ``track/system/
     regime@version``, the paper track's without the prefix)."""
-    first = _parsed(key).group(3).split(",")[0]
-    parts = first.split("/")
+    parts = _tasks_of(key)[0].split("/")
     return parts[0] if len(parts) == 3 else PAPER_TRACK
 
 
 def _parsed(key: str) -> re.Match:
-    matched = re.fullmatch(r"(.+) (\S+) seed\d+ \[(.*)\]", key)
+    matched = re.fullmatch(r"(.+) (\S+) seed(\d+) \[(.*)\]", key)
     if matched is None:
         raise ValueError(f"not a regeneration ledger key: {key!r}")
     return matched
@@ -520,12 +526,15 @@ class Redo:
     jobs: tuple[str, ...]
     commit: str
     dry_run: bool = False
+    capped_only: bool = False
 
     def describe(self) -> str:
         verb = "would make" if self.dry_run else "makes"
+        which = "whose fit reached a cap and " if self.capped_only else ""
         return (
-            f"--redo {' '.join(self.rows)} {verb} {len(self.cells)} cells again (those not "
-            f"written at {self.commit}) and supersedes {len(self.jobs)} jobs of the ledger"
+            f"--redo {' '.join(self.rows)} {verb} {len(self.cells)} cells again (those "
+            f"{which}not written at {self.commit}) and supersedes {len(self.jobs)} jobs of "
+            "the ledger"
         )
 
 
@@ -536,16 +545,21 @@ def redo(
     rows: Iterable[str],
     because: str,
     dry_run: bool = False,
+    capped_only: bool = False,
 ) -> Redo:
     """Make ``rows``' cells of ``source`` (a selection, :func:`select`) again in ``into``
     where the code at hand did not write them, after a change of those rows' training was
     committed: each of their cell files in ``into`` that names another commit than today's
-    is removed, with its kept estimate, and the ledger's jobs of those rows, systems and
-    tracks that another commit ran are moved to its ``superseded`` list with ``because``
-    (:func:`~kkl_bench.run.ledger.supersede`), what they spent kept apart. Cells written at
-    today's commit stay, so a resumed redo removes nothing it made. With ``dry_run`` nothing
-    is removed. Raises ValueError if the code is not a clean commit, ``into`` holds no
-    regeneration's ledger, or a row is not in ``source``."""
+    is removed, with its kept estimate, and the ledger's jobs of another commit that made
+    one of them are moved to its ``superseded`` list with ``because``
+    (:func:`~kkl_bench.run.ledger.supersede`), what they spent kept apart. With
+    ``capped_only``, only the cells whose fit reached a cap
+    (:func:`~kkl_bench.support.convergence.reached_cap`), and the other cells of their jobs:
+    after a cap was raised, the fits the plateau rule stopped would come back bit for
+    bit. Cells written at today's commit
+    stay, so a resumed redo removes nothing it made. With ``dry_run`` nothing is removed.
+    Raises ValueError if the code is not a clean commit, ``into`` holds no regeneration's
+    ledger, or a row is not in ``source``."""
     commit = provenance()["git_commit"]
     if not is_clean_commit(commit):
         raise ValueError(
@@ -558,31 +572,35 @@ def redo(
             "the cells a regeneration wrote"
         )
     rows = tuple(rows)
-    chosen = select(source, rows)
-    stale = []
-    for cell in chosen.itertuples():
+    elsewhere, wanted = {}, set()  # (row, system, seed, task id): cells of another commit
+    for cell in select(source, rows).itertuples():
         path = cell_path(
             into, cell.estimator, cell.system, cell.regime, profile.name, cell.seed, cell.track
         )
         if not path.exists():
             continue
-        if read_cell(path).provenance.get("git_commit") != commit:
-            stale.append(path)
-    systems, tracks = set(chosen["system"]), set(chosen["track"])
+        record = read_cell(path)
+        if record.provenance.get("git_commit") == commit:
+            continue
+        name = (cell.estimator, cell.system, cell.seed, cell.task)
+        elsewhere[name] = path
+        if not capped_only or reached_cap(record.fit_report):
+            wanted.add(name)
     jobs = [
         key
         for key, record in read_ledger(into)["jobs"].items()
-        if _row_of(key) in rows
-        and _system_of(key) in systems
-        and _track_of(key) in tracks
-        and record["git_commit"] != commit
+        if record["git_commit"] != commit
+        and any((*_row_system_seed(key), task) in wanted for task in _tasks_of(key))
     ]
+    # every cell of a superseded job, so that the ledger's jobs still account for each cell
+    remade = {(*_row_system_seed(key), task) for key in jobs for task in _tasks_of(key)}
+    stale = [path for name, path in elsewhere.items() if name in wanted | remade]
     if not dry_run:
         supersede(into, jobs, because)
         for path in stale:
             estimate_path(path).unlink(missing_ok=True)
             path.unlink()
-    return Redo(rows, tuple(stale), tuple(jobs), commit, dry_run)
+    return Redo(rows, tuple(stale), tuple(jobs), commit, dry_run, capped_only)
 
 
 def select(

@@ -91,6 +91,15 @@ def outcomes(report: Any) -> list[str]:
     return found
 
 
+def reached_cap(report: Any) -> bool:
+    """Whether a training in the fit ``report`` (nested dicts) reached its cap of steps
+    before the plateau rule stopped it (``"stopped": "cap"``): the fits that a higher cap
+    makes differently; one the rule stopped takes the same steps under any higher cap."""
+    if not isinstance(report, dict):
+        return False
+    return report.get("stopped") == "cap" or any(map(reached_cap, report.values()))
+
+
 def trainings(report: Any, path: tuple[str, ...] = ()) -> list[tuple[str, dict]]:
     """Every training's record in a fit ``report`` (nested dicts; a record is a dict with a
     ``validation_curve``), in order, each with the path of keys that leads to it
