@@ -531,6 +531,9 @@ def test_a_redo_makes_a_row_s_cells_of_another_commit_again_and_keeps_their_jobs
         all(path.exists() for path in ekf_cells)
         and ledger.read_ledger(into).get("superseded") is None
     )
+    planned = regenerate.plan(source, PROFILE, into, tmp_path / "c", recompute=dry.cells)
+    assert [(p.job.estimator, len(p.job.tasks)) for p in planned.jobs] == [("ekf", 3)]
+    assert planned.done == 2 and all(path.exists() for path in ekf_cells)
 
     done = regenerate.redo(source, PROFILE, into, ["ekf"], "a new cap")
     assert done.jobs == dry.jobs and not any(path.exists() for path in ekf_cells)

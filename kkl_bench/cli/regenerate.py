@@ -71,7 +71,8 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
     parser.add_argument(
         "--dry-run",
         action="store_true",
-        help="print the plan and its estimate (and what --redo would remove), change nothing",
+        help="print the plan and its estimate (with what --redo would remove among it), change "
+        "nothing",
     )
     add_cache_argument(parser)
     add_jobs_argument(
@@ -114,6 +115,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
     source = regenerate.select(load_results(args.source), args.estimator, args.track, args.system)
     if source.empty:
         raise ValueError(f"{args.source} holds no cells of the selection")
+    redone = None
     if args.redo:
         redone = regenerate.redo(
             source,
@@ -139,6 +141,7 @@ def regenerate_command(args: argparse.Namespace) -> int:
         args.cache or default_cache_dir(),
         args.command_line,
         args.device,
+        recompute=redone.cells if redone and redone.dry_run else (),
     )
     print(planned.describe())
     if args.dry_run or not planned.jobs:

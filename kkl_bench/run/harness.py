@@ -209,7 +209,7 @@ def _done(spec: RunSpec, estimator: str, task: Task, seed: int) -> CellResult | 
     path = cell_path(
         spec.results_dir, estimator, task.system, task.regime, spec.profile.name, seed, task.track
     )
-    if spec.force or not path.exists():
+    if spec.force or path in spec.recompute or not path.exists():
         return None
     try:
         cell = read_cell(path)

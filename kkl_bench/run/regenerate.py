@@ -342,10 +342,12 @@ def plan(
     cache_dir: Path,
     command: str | None = None,
     device: str = "cpu",
+    recompute: Iterable[Path] = (),
 ) -> Plan:
     """The regeneration of the cells of ``source`` (:func:`~kkl_bench.run.results.load_results`
     of the source folder, narrowed as wanted, of ``profile``) into the folder ``into``, its
-    torch estimators trained on ``device`` (:mod:`kkl_bench.support.devices`).
+    torch estimators trained on ``device`` (:mod:`kkl_bench.support.devices`), the cell
+    files ``recompute`` planned as to be made again (a dry run's :attr:`Redo.cells`).
 
     Each row is planned as a run of that row alone over the systems, tracks and seeds of
     its source cells (``<name>+logged`` and ``<name>+truth`` rows as runs of theirs), and
@@ -372,6 +374,7 @@ def plan(
             own_rows_only=not derived,
             keep_unsupported=True,
             device=device,
+            recompute=frozenset(recompute),
         )
         todo, cached = harness.plan(spec)
         finished = [(c.estimator, c.task, c.seed) for c in cached]

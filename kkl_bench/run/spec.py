@@ -65,6 +65,9 @@ class RunSpec:
     them anew (no fit: a plugin that gains support gets its cells); a regeneration, meant
     to run one commit's code across its invocations, keeps them, so that what it has left
     to do comes to nothing."""
+    recompute: frozenset[Path] = frozenset()
+    """Cell files planned as to be computed again though they are on disk: those a dry run
+    of ``kkl-bench regenerate --redo`` would remove."""
 
     def __post_init__(self) -> None:
         if not self.estimators:
