@@ -556,7 +556,10 @@ def test_a_redo_makes_a_row_s_cells_of_another_commit_again_and_keeps_their_jobs
 
     summary = ledger.ledger_summary(ledger.read_ledger(into))
     assert summary["jobs"] == 2 and summary["cells"] == 5
-    assert summary["commits"] == ["0000000000a1", "0000000000b2"]
+    assert summary["commits"] == {"0000000000a1": 2, "0000000000b2": 3}  # cells, in order
+    assert "at commits 0000000000a1 (2 cells), 0000000000b2 (3 cells), the jobs" in (
+        regeneration_sentence(summary, 5)
+    )
     assert summary["superseded"]["jobs"] == 1 and summary["superseded"]["because"] == ["a new cap"]
     assert summary["superseded"]["core_hours"] == superseded["seconds"] / 3600
     assert "Besides, 1 earlier jobs took 0.0 core-hours whose cells were made again at a " in (

@@ -238,7 +238,10 @@ def regeneration_sentence(summary: dict | None, cells: int) -> str:
             "These results were not written by `kkl-bench regenerate` (their folder holds no "
             "ledger of one): the core-hours they took are not recorded."
         )
-    commits = ", ".join(summary["commits"])
+    commits = ", ".join(
+        f"{commit} ({count} cell{'s' * (count != 1)})"
+        for commit, count in summary["commits"].items()
+    )
     share = (
         f"all {cells} cells"
         if summary["cells"] >= cells

@@ -226,13 +226,18 @@ def _killed_meters(folder: Path, key: str) -> Iterator[tuple[Path, dict[str, flo
 
 def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
     """What the board says of a regeneration: jobs, cells, core-hours measured, the jobs
-    that ran with a GPU, the commits that ran them, first and last finish, and the jobs
+    that ran with a GPU, the commits that ran them (``commits``: each with the cells its
+    jobs made, in the order they first finished one), first and last finish, and the jobs
     whose cells were made again (``superseded``: how many, their core-hours and why);
     None without one."""
     jobs = ledger.get("jobs", {})
     if not jobs:
         return None
     finished = sorted(record["finished_at"] for record in jobs.values())
+    commits: dict[str, int] = {}
+    for record in sorted(jobs.values(), key=lambda record: record["finished_at"]):
+        commit = str(record["git_commit"])
+        commits[commit] = commits.get(commit, 0) + record["cells"]
     superseded = ledger.get("superseded", [])
     return {
         "jobs": len(jobs),
@@ -240,7 +245,7 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
         "core_hours": sum(record["seconds"] for record in jobs.values()) / 3600,
         "estimated_core_hours": sum(record["estimate_s"] for record in jobs.values()) / 3600,
         "gpu_jobs": sum(record.get("device", "cpu") == "cuda" for record in jobs.values()),
-        "commits": sorted({str(record["git_commit"]) for record in jobs.values()}),
+        "commits": commits,
         "from": finished[0],
         "to": finished[-1],
         "superseded": {
