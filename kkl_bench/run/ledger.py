@@ -233,9 +233,9 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
     jobs = ledger.get("jobs", {})
     if not jobs:
         return None
-    finished = sorted(record["finished_at"] for record in jobs.values())
+    in_order = sorted(jobs.values(), key=lambda record: record["finished_at"])
     commits: dict[str, int] = {}
-    for record in sorted(jobs.values(), key=lambda record: record["finished_at"]):
+    for record in in_order:
         commit = str(record["git_commit"])
         commits[commit] = commits.get(commit, 0) + record["cells"]
     superseded = ledger.get("superseded", [])
@@ -246,8 +246,8 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
         "estimated_core_hours": sum(record["estimate_s"] for record in jobs.values()) / 3600,
         "gpu_jobs": sum(record.get("device", "cpu") == "cuda" for record in jobs.values()),
         "commits": commits,
-        "from": finished[0],
-        "to": finished[-1],
+        "from": in_order[0]["finished_at"],
+        "to": in_order[-1]["finished_at"],
         "superseded": {
             "jobs": len(superseded),
             "core_hours": sum(record["seconds"] for record in superseded) / 3600,

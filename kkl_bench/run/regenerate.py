@@ -310,10 +310,12 @@ def _row_of(key: str) -> str:
     return _parsed(key).group(1)
 
 
-def _row_system_seed(key: str) -> tuple[str, str, int]:
-    """The row, system and seed of a ledger key (:func:`job_key`)."""
+def _fit_cells(key: str) -> list[tuple[str, str, int, str]]:
+    """The cells of a ledger key's fit (:func:`job_key`), each as its row, system, seed and
+    task id."""
     matched = _parsed(key)
-    return matched.group(1), matched.group(2), int(matched.group(3))
+    row, system, seed = matched.group(1), matched.group(2), int(matched.group(3))
+    return [(row, system, seed, task) for task in _tasks_of(key)]
 
 
 def _tasks_of(key: str) -> list[str]:
@@ -559,10 +561,9 @@ def redo(
     ``capped_only``, only the cells whose fit reached a cap
     (:func:`~kkl_bench.support.convergence.reached_cap`), and the other cells of their jobs:
     after a cap was raised, the fits the plateau rule stopped would come back bit for
-    bit. Cells written at today's commit
-    stay, so a resumed redo removes nothing it made. With ``dry_run`` nothing is removed.
-    Raises ValueError if the code is not a clean commit, ``into`` holds no regeneration's
-    ledger, or a row is not in ``source``."""
+    bit. Cells written at today's commit stay, so a resumed redo removes nothing it made.
+    With ``dry_run`` nothing is removed. Raises ValueError if the code is not a clean
+    commit, ``into`` holds no regeneration's ledger, or a row is not in ``source``."""
     commit = provenance()["git_commit"]
     if not is_clean_commit(commit):
         raise ValueError(
@@ -589,15 +590,15 @@ def redo(
         elsewhere[name] = path
         if not capped_only or reached_cap(record.fit_report):
             wanted.add(name)
-    jobs = [
-        key
+    fits = {
+        key: _fit_cells(key)
         for key, record in read_ledger(into)["jobs"].items()
         if record["git_commit"] != commit
-        and any((*_row_system_seed(key), task) in wanted for task in _tasks_of(key))
-    ]
+    }
+    jobs = [key for key, cells in fits.items() if not wanted.isdisjoint(cells)]
     # every cell of a superseded job, so that the ledger's jobs still account for each cell
-    remade = {(*_row_system_seed(key), task) for key in jobs for task in _tasks_of(key)}
-    stale = [path for name, path in elsewhere.items() if name in wanted | remade]
+    remade = wanted.union(*(fits[key] for key in jobs))
+    stale = [path for name, path in elsewhere.items() if name in remade]
     if not dry_run:
         supersede(into, jobs, because)
         for path in stale:
