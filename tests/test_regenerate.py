@@ -375,7 +375,9 @@ def test_a_killed_attempt_s_meter_is_committed_with_the_results_and_counted_in_a
     assert ledger.interrupted_times(cloned, key) == banked
 
 
-def test_the_work_done_counts_running_jobs_processor_time_up_to_their_expected_work(tmp_path):
+def test_the_work_done_counts_processor_time_and_a_job_past_its_estimate_grows_the_total(
+    tmp_path,
+):
     def planned(seed, fit_s, banked_s=0.0):
         job = Job("kalmannet", "duffing", (Task("duffing", "zero"),), seed)
         return regenerate.PlannedJob(None, job, fit_s, scoring_s=0.0, banked_s=banked_s)
@@ -383,29 +385,33 @@ def test_the_work_done_counts_running_jobs_processor_time_up_to_their_expected_w
     long, short = planned(0, 100.0, banked_s=5.0), planned(1, 0.1)
     plan = regenerate.Plan([long, short], cells=2, done=0)
     done = regenerate.WorkDone(plan, tmp_path, time.time_ns())
-    assert done.seconds() == 5.0  # before anything runs: the killed attempt's banked work
+    assert done.measure() == (5.0, 100.1)  # before anything runs: the killed attempt's work
     children = [_metered_child(tmp_path, job.key) for job in (long, short)]
-    try:  # each has spent 0.3 s under its meter; the short job counts its 0.1 s only
-        assert 5.3 <= done.seconds() - 0.1 < 6.0
-        done.finish(long)
-        assert done.seconds() == pytest.approx(100.1)
+    try:  # each has spent 0.3 s under its meter; the short job, expected 0.1 s, grows the total
+        spent, total = done.measure()
+        assert 5.6 <= spent < 6.5
+        assert 100.3 <= total < 101.0  # the long job's 100 s, and the short one's 0.3 s
+        ledger.record_job(tmp_path, long.key, {"seconds": 80.0, "wall_seconds": 90.0}, 100, 1, 0)
+        done.finish(long)  # at what the ledger records: 20 s less than expected
+        spent, total = done.measure()
+        assert 80.3 <= spent < 81.0 and total == spent
         later = regenerate.WorkDone(plan, tmp_path, time.time_ns())
-        assert later.seconds() == 5.0  # meters of attempts started before it are not its own
+        assert later.measure() == (5.0, 100.1)  # meters of attempts started before it
     finally:
         for child in children:
             child.kill()
             child.wait()
 
 
-def test_a_bar_follows_measured_work_and_stops_at_its_total():
+def test_a_bar_follows_measured_work_and_its_total():
     bar = tqdm(total=10.0, file=io.StringIO())
-    done = [4.0]
-    with following(bar, lambda: done[0], every_s=0.01) as update:
+    measured = [(4.0, 10.0)]
+    with following(bar, lambda: measured[0], every_s=0.01) as update:
         time.sleep(0.1)
-        assert bar.n == 4.0  # set by the thread
-        done[0] = 12.0
+        assert (bar.n, bar.total) == (4.0, 10.0)  # set by the thread
+        measured[0] = (12.0, 15.0)  # a job ran past its estimate
         update()
-        assert bar.n == 10.0  # at most its total
+        assert (bar.n, bar.total) == (12.0, 15.0)
     bar.close()
 
 
@@ -418,8 +424,8 @@ def test_a_finished_job_adds_its_killed_attempts_time_to_the_ledger(published, t
     (meters / "elsewhere-1-1.json").write_text('{"seconds": 1000.0, "wall_seconds": 2000.0}')
     resumed = regenerate.plan(load_results(published), PROFILE, into, tmp_path / "cache")
     assert [job.banked_s for job in resumed.jobs] == [1000.0, 0.0]
-    banked = regenerate.WorkDone(resumed, into, time.time_ns()).seconds()
-    assert banked == resumed.jobs[0].estimate_s  # 1000 s banked, counted at most its estimate
+    spent, total = regenerate.WorkDone(resumed, into, time.time_ns()).measure()
+    assert spent == 1000.0 and total == 1000.0 + resumed.jobs[1].expected_s  # past its estimate
     assert "1 of the jobs resume killed attempts, which spent 0.28 core-hours" in resumed.describe()
     jobs = regenerate.run(resumed, into)["jobs"]
     assert 1000 < jobs[first]["seconds"] < 1100 and 2000 < jobs[first]["wall_seconds"] < 2100

@@ -148,10 +148,11 @@ def regenerate_command(args: argparse.Namespace) -> int:
         return 0
     failed = 0
     done = regenerate.WorkDone(planned, args.into, time.time_ns())
+    spent, total = done.measure()
     with (
-        work_bar(planned.expected_s, "regenerate (estimated work)", done.seconds()) as bar,
+        work_bar(total, "regenerate (processor time)", spent) as bar,
         showing_jobs(bar, args.into / ".claims" / profile.name),
-        following(bar, done.seconds, ledger.METER_EVERY_S) as update,
+        following(bar, done.measure, ledger.METER_EVERY_S) as update,
     ):
 
         def progress(planned_job, outcome):

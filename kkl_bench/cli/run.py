@@ -213,15 +213,20 @@ def work_bar(total_s: float, desc: str, done_s: float = 0.0) -> tqdm:
 
 
 @contextlib.contextmanager
-def following(bar: tqdm, done: Callable[[], float], every_s: float) -> Iterator[Callable[[], None]]:
-    """Set ``bar``'s position to ``done()`` (seconds of work, at most its total) every
-    ``every_s`` seconds while the block runs, for work whose progress is measured rather
-    than counted; yields the function that does it at once (after a job ends)."""
+def following(
+    bar: tqdm, measure: Callable[[], tuple[float, float]], every_s: float
+) -> Iterator[Callable[[], None]]:
+    """Set ``bar``'s position and total to ``measure()`` (seconds of work done, and in
+    all) every ``every_s`` seconds while the block runs, for work whose progress is
+    measured rather than counted and whose total grows where a job takes longer than
+    expected; yields the function that does it at once (after a job ends)."""
     lock, stop = threading.Lock(), threading.Event()
 
     def update() -> None:
         with lock:
-            bar.n = min(done(), bar.total)
+            done, total = measure()
+            bar.total = max(total, done)
+            bar.n = done
             bar.refresh()
 
     def follow() -> None:

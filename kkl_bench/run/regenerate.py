@@ -7,8 +7,8 @@ one fit, the cells it scores), with each row run as a ``kkl-bench run`` of that 
 would run it. Nothing in the source folder is written. A job's cost is estimated from
 the source cells' own records (the training seconds stored with their models, the
 Phase-1 models the KKL rows share counted once, and their scoring time), so the plan
-states its core-hours before it starts, and the progress bar counts estimated seconds
-of work, not cells. A job is a fit (it trains a model) or scores only (its models are
+states its core-hours before it starts, and the progress bar counts processor seconds
+of work (:class:`WorkDone`), not cells. A job is a fit (it trains a model) or scores only (its models are
 trained by an earlier job, or already, for cells of other tracks). A resumed
 regeneration also says how many times their estimates the jobs it finished took, and
 counts the training of each row's remaining jobs at its row's rate on the job's track
@@ -104,9 +104,9 @@ class PlannedJob:
 
     @property
     def expected_s(self) -> float:
-        """Its estimate with its training at the rate measured so far (what the progress
-        bar counts): a row's rate is training-dominated, and a job that trains nothing
-        keeps its scoring estimate."""
+        """Its estimate with its training at the rate measured so far (the work the
+        progress bar expects of it, :class:`WorkDone`): a row's rate is
+        training-dominated, and a job that trains nothing keeps its scoring estimate."""
         return self.fit_s * self.rate + self.scoring_s
 
     @property
@@ -245,30 +245,42 @@ class MeasuredRates:
 
 
 class WorkDone:
-    """How much of a plan's expected work (:attr:`PlannedJob.expected_s`) is done, for a
-    progress bar that moves while fits train, not only when they end: a finished job
-    counts its expected work, a running one the processor seconds it has spent (its
-    killed attempts' and, from its meter, this invocation's: ``since_ns``), at most its
-    expected work. Before anything runs it is the plan's banked work (a resumed
-    training continues from its checkpoint), each job's at most its expected work."""
+    """The processor seconds a plan's jobs have spent and are expected to spend, for a
+    progress bar that moves while fits train, not only when they end, and whose time left
+    follows the machine's measured pace. A job has spent its killed attempts' seconds
+    (``banked_s``) and, from its meter, this invocation's (its attempts started at or
+    after ``since_ns``); a finished one, what the ledger records for it. A job not
+    finished is expected to need its expected work (:attr:`PlannedJob.expected_s`), or
+    what it has spent where that is more: a job that runs past its estimate grows the
+    total instead of stopping the bar, so the bar's rate stays the processor seconds the
+    jobs get per second, and its time left counts the work the other jobs are still
+    expected to need."""
 
     def __init__(self, planned: Plan, into: Path, since_ns: int) -> None:
         self.jobs, self.into, self.since_ns = planned.jobs, into, since_ns
-        self.finished: set[str] = set()
+        self.finished: dict[str, float] = {}
 
     def finish(self, planned_job: PlannedJob) -> None:
-        self.finished.add(planned_job.key)
+        """Count ``planned_job`` at the processor seconds the ledger records for it (its
+        expected work if the ledger has no record of it)."""
+        record = read_ledger(self.into)["jobs"].get(planned_job.key, {})
+        self.finished[planned_job.key] = record.get("seconds", planned_job.expected_s)
 
-    def seconds(self) -> float:
-        return sum(
-            planned.expected_s
-            if planned.key in self.finished
-            else min(
-                planned.banked_s + running_seconds(self.into, planned.key, self.since_ns),
-                planned.expected_s,
-            )
+    def _spent(self, planned: PlannedJob) -> float:
+        if planned.key in self.finished:
+            return self.finished[planned.key]
+        return planned.banked_s + running_seconds(self.into, planned.key, self.since_ns)
+
+    def measure(self) -> tuple[float, float]:
+        """``(spent, total)``: the seconds the jobs have spent, and those plus the work
+        the unfinished ones are still expected to need (s, one thread a job)."""
+        spent = {planned.key: self._spent(planned) for planned in self.jobs}
+        left = sum(
+            max(planned.expected_s - spent[planned.key], 0.0)
             for planned in self.jobs
+            if planned.key not in self.finished
         )
+        return sum(spent.values()), sum(spent.values()) + left
 
 
 def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
