@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from kkl_bench.cli import main
 from kkl_bench.cli.run import following
-from kkl_bench.report.provenance import regeneration_sentence
+from kkl_bench.report.provenance import core_hours_per_row, regeneration_sentence
 from kkl_bench.run import harness, ledger, regenerate
 from kkl_bench.run.harness import Job
 from kkl_bench.run.results import load_results, read_cell, trained_models, write_cell
@@ -486,6 +486,42 @@ def test_the_board_says_how_many_of_its_cells_the_regeneration_wrote(published, 
     part = regeneration_sentence(summary, 12)
     assert "5 of the 12 cells (the others' runs are listed below), by 2 jobs" in part
     assert "not written by `kkl-bench regenerate`" in regeneration_sentence(None, 12)
+
+
+def test_the_board_says_where_the_core_hours_went_per_row(tmp_path):
+    def record(key, hours, estimated_hours, cells):
+        times = {"seconds": hours * 3600, "wall_seconds": hours * 3600}
+        ledger.record_job(tmp_path, key, times, estimated_hours * 3600, cells, 0)
+
+    record("ekf duffing seed0 [duffing/zero@v1]", 0.5, 0.25, 4)
+    record("autonomous_kkl duffing seed0 [duffing/zero@v1,duffing/square@v1]", 1.0, 2.0, 2)
+    record("autonomous_kkl lorenz seed0 [hard/lorenz/sparse-zero@v1]", 3.0, 1.0, 1)
+    record("autonomous_kkl duffing seed1 [duffing/zero@v1]", 2.5, 1.0, 1)  # Duffing: 3.5
+    rows = ledger.ledger_summary(ledger.read_ledger(tmp_path))["rows"]
+    assert rows == [
+        {
+            "row": "autonomous_kkl",
+            "jobs": 3,
+            "cells": 4,
+            "core_hours": 6.5,
+            "estimated_core_hours": 4.0,
+            "costliest_system": "duffing",
+            "costliest_core_hours": 3.5,
+        },
+        {
+            "row": "ekf",
+            "jobs": 1,
+            "cells": 4,
+            "core_hours": 0.5,
+            "estimated_core_hours": 0.25,
+            "costliest_system": "duffing",
+            "costliest_core_hours": 0.5,
+        },
+    ]
+    text, table = core_hours_per_row(ledger.ledger_summary(ledger.read_ledger(tmp_path)))
+    assert "counts in the job that trained it" in text.markdown
+    assert list(table.frame["costliest"]) == ["duffing (3.50)", "duffing (0.50)"]
+    assert core_hours_per_row(None) == []
 
 
 def test_a_job_scoring_many_tasks_keeps_a_meter_of_its_own(tmp_path):

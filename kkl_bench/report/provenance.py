@@ -263,6 +263,41 @@ def regeneration_sentence(summary: dict | None, cells: int) -> str:
     )
 
 
+CORE_HOURS_TEXT = (
+    "Where the regeneration's core-hours went, per row, from its ledger (the jobs whose "
+    "cells the folder holds; a model several rows use, as the KKL rows' Phase 1, counts in "
+    "the job that trained it, the first to need it):"
+)
+CORE_HOURS_COLUMNS = {
+    "row": "Row",
+    "jobs": "Jobs",
+    "cells": "Cells",
+    "core_hours": "Core-hours",
+    "estimated_core_hours": "Estimated",
+    "costliest": "Costliest system (core-hours)",
+}
+
+
+def core_hours_per_row(summary: dict | None) -> list[Text | Table]:
+    """The text and table of a regeneration's core-hours per row
+    (:func:`kkl_bench.run.ledger.ledger_summary`'s ``rows``); nothing without one."""
+    if summary is None:
+        return []
+    rows = pd.DataFrame(summary["rows"]).assign(
+        row=lambda frame: "`" + frame["row"] + "`",
+        costliest=lambda frame: [
+            f"{system} ({hours:.2f})"
+            for system, hours in zip(
+                frame["costliest_system"], frame["costliest_core_hours"], strict=True
+            )
+        ],
+    )
+    return [
+        Text(CORE_HOURS_TEXT),
+        Table(rows, CORE_HOURS_COLUMNS, id="core-hours", floatfmt=".2f"),
+    ]
+
+
 def _superseded(summary: dict) -> str:
     """The sentence on the jobs whose cells a regeneration made again (``kkl-bench
     regenerate --redo``), with the reasons they were given; empty if none."""
@@ -329,6 +364,7 @@ def provenance_sections(board: Board) -> list[Section]:
             "Reproduce",
             [
                 Text(" ".join(sentence for sentence in made_by if sentence)),
+                *core_hours_per_row(board.regeneration),
                 Text(RUNS_TEXT),
                 Table(board.runs, RUN_COLUMNS, id="runs"),
                 *listed,

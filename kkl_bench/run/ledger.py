@@ -20,6 +20,7 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import socket
 import threading
 import time
@@ -27,6 +28,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
 from filelock import FileLock, Timeout
 
 from kkl_bench.support.provenance import provenance
@@ -35,6 +37,16 @@ LEDGER_FILE = "regeneration.json"
 METER_FOLDER = ".meters"
 METER_EVERY_S = 30.0
 """Seconds between a running job's meter writes: the most a kill leaves uncounted."""
+
+
+def key_parts(key: str) -> tuple[str, str, int, list[str]]:
+    """The row, system, seed and task ids (:attr:`~kkl_bench.suite.task.Task.id`) of a
+    job's ledger key (:func:`kkl_bench.run.regenerate.job_key`)."""
+    matched = re.fullmatch(r"(.+) (\S+) seed(\d+) \[(.*)\]", key)
+    if matched is None:
+        raise ValueError(f"not a regeneration ledger key: {key!r}")
+    row, system, seed, tasks = matched.groups()
+    return row, system, int(seed), tasks.split(",")
 
 
 def read_ledger(folder: Path) -> dict[str, Any]:
@@ -228,8 +240,10 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
     """What the board says of a regeneration: jobs, cells, core-hours measured, the jobs
     that ran with a GPU, the commits that ran them (``commits``: each with the cells its
     jobs made, in the order they first finished one), first and last finish, and the jobs
-    whose cells were made again (``superseded``: how many, their core-hours and why);
-    None without one."""
+    whose cells were made again (``superseded``: how many, their core-hours and why), and
+    ``rows``: per row, its jobs, cells, core-hours measured and estimated, and its
+    costliest system with that system's core-hours, the costliest row first; None without
+    one."""
     jobs = ledger.get("jobs", {})
     if not jobs:
         return None
@@ -248,9 +262,47 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
         "commits": commits,
         "from": in_order[0]["finished_at"],
         "to": in_order[-1]["finished_at"],
+        "rows": _core_hours_per_row(jobs),
         "superseded": {
             "jobs": len(superseded),
             "core_hours": sum(record["seconds"] for record in superseded) / 3600,
             "because": list(dict.fromkeys(record["because"] for record in superseded)),
         },
     }
+
+
+def _core_hours_per_row(jobs: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per row of the ledger's ``jobs``: jobs, cells, core-hours measured and estimated,
+    the costliest system and its core-hours; the row that took most first."""
+    frame = pd.DataFrame(
+        [
+            {
+                "row": key_parts(key)[0],
+                "system": key_parts(key)[1],
+                "cells": record["cells"],
+                "core_hours": record["seconds"] / 3600,
+                "estimated_core_hours": record["estimate_s"] / 3600,
+            }
+            for key, record in jobs.items()
+        ]
+    )
+    per_system = frame.groupby(["row", "system"], sort=False)["core_hours"].sum()
+    costliest = (
+        per_system.sort_values(ascending=False, kind="stable")
+        .groupby(level="row")
+        .head(1)
+        .reset_index(level="system")
+        .set_axis(["costliest_system", "costliest_core_hours"], axis="columns")
+    )
+    rows = (
+        frame.groupby("row", sort=False)
+        .agg(
+            jobs=("cells", "size"),
+            cells=("cells", "sum"),
+            core_hours=("core_hours", "sum"),
+            estimated_core_hours=("estimated_core_hours", "sum"),
+        )
+        .join(costliest)
+        .sort_values("core_hours", ascending=False, kind="stable")
+    )
+    return rows.reset_index().to_dict("records")

@@ -25,7 +25,6 @@ the board's Reproduce section reads them.
 
 from __future__ import annotations
 
-import re
 from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -41,6 +40,7 @@ from kkl_bench.run.harness import Job, JobOutcome, RunSpec
 from kkl_bench.run.ledger import (
     LEDGER_FILE,
     interrupted_times,
+    key_parts,
     killed_attempts,
     metered,
     read_ledger,
@@ -319,34 +319,21 @@ def measured_rates(ledger: dict[str, Any]) -> MeasuredRates | None:
 
 def _row_of(key: str) -> str:
     """The row of a ledger key (:func:`job_key`)."""
-    return _parsed(key).group(1)
+    return key_parts(key)[0]
 
 
 def _fit_cells(key: str) -> list[tuple[str, str, int, str]]:
     """The cells of a ledger key's fit (:func:`job_key`), each as its row, system, seed and
     task id."""
-    matched = _parsed(key)
-    row, system, seed = matched.group(1), matched.group(2), int(matched.group(3))
-    return [(row, system, seed, task) for task in _tasks_of(key)]
-
-
-def _tasks_of(key: str) -> list[str]:
-    """The task ids of a ledger key's fit (:attr:`Task.id`)."""
-    return _parsed(key).group(4).split(",")
+    row, system, seed, tasks = key_parts(key)
+    return [(row, system, seed, task) for task in tasks]
 
 
 def _track_of(key: str) -> str:
     """The track of a ledger key's fit: its first task's (:attr:`Task.id`, ``track/system/
     regime@version``, the paper track's without the prefix)."""
-    parts = _tasks_of(key)[0].split("/")
+    parts = key_parts(key)[3][0].split("/")
     return parts[0] if len(parts) == 3 else PAPER_TRACK
-
-
-def _parsed(key: str) -> re.Match:
-    matched = re.fullmatch(r"(.+) (\S+) seed(\d+) \[(.*)\]", key)
-    if matched is None:
-        raise ValueError(f"not a regeneration ledger key: {key!r}")
-    return matched
 
 
 def plan(
