@@ -137,7 +137,7 @@ def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, cap
     assert main([*run, "--estimator", "autonomous_kkl", "ekf"]) == 0
     capsys.readouterr()
     assert main(["trainings", "--results", results, "--before", results]) == 0
-    steps, converged, capped, change = capsys.readouterr().out.split("\n\n")
+    steps, converged, capped, change, _, costs = capsys.readouterr().out.split("\n\n")
     assert "| autonomous_kkl | vdp      | phase1_log.encoder |" in steps
     assert "| autonomous_kkl | vdp      | phase1_log.decoder |" in steps and "ekf" not in steps
     assert "of 1 learned cells" in converged  # the filter's cell is not a learned one
@@ -148,8 +148,9 @@ def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, cap
     assert main(["publish", "--results", results, "--profile", "quick", "--out", str(board)]) == 0
     assert capped.strip() in (board / "README.md").read_text().replace("\n", " ")
     assert "| ekf " in change and change.count("|                1 |") == 2  # after / before
+    assert "| autonomous_kkl | vdp      |             1 |            1 |" in costs
     assert main(["trainings", "--results", results, "--before", results, "--by-regime"]) == 0
-    assert "| Row            | System   | Regime   |" in capsys.readouterr().out.split("\n\n")[-1]
+    assert "| Row            | System   | Regime   |" in capsys.readouterr().out.split("\n\n")[-3]
     assert main(["trainings", "--results", results, "--by-regime"]) == 2
     assert "--by-regime compares with --before DIR" in capsys.readouterr().err
     filters = str(tmp_path / "filters")
@@ -171,6 +172,57 @@ def test_the_command_prints_a_fitted_rows_trainings_and_its_change(tmp_path, cap
     )
     assert main(["trainings", "--results", filters]) == 2
     assert "no trained fits among the paper track's cells" in capsys.readouterr().err
+
+
+def test_a_rows_fits_cost_is_compared_per_fit_on_the_clock_each_recorded():
+    def cell(row, seed, regime, spent):
+        return {
+            "estimator": row,
+            "system": "duffing",
+            "task": f"duffing/{regime}@v1",
+            "regime": regime,
+            "seed": seed,
+            "fit_report": {"spent": spent},
+        }
+
+    def cosine(samples, seconds):  # before: wall time only
+        return {"phase2": {"steps": 16000, "samples": samples, "seconds": seconds}}
+
+    before = pd.DataFrame(
+        [
+            cell("gru_observer", seed, regime, cosine(1000 * (2 * seed + 1), 100 * (2 * seed + 1)))
+            for seed in (0, 1)
+            for regime in ("zero", "square")
+        ]
+        + [cell("kalmannet", 0, "zero", cosine(10, 1)), cell("ekf", 0, "zero", {})]
+    )
+    seed0 = {
+        "phase1": {"steps": 1000, "samples": 600, "seconds": 90, "processor_seconds": 30},
+        "phase2": {"steps": 0, "samples": 0},  # no second phase: left out
+    }
+    seed1 = {
+        "phase1": {"steps": 3000, "samples": 1800, "seconds": 100, "processor_seconds": 90},
+        "phase2": {"steps": 10, "samples": 0, "seconds": 1},  # its wall time only
+    }
+    after = pd.DataFrame(
+        [cell("gru_observer", 0, regime, seed0) for regime in ("zero", "square")]
+        + [cell("gru_observer", 1, "zero", seed1), cell("ekf", 0, "zero", {})]
+    )
+    (row,) = trainings.fit_cost_change(before, after).to_dict("records")  # kalmannet: before only
+    assert row == {
+        "Row": "gru_observer",
+        "System": "duffing",
+        "Fits before": 2,
+        "Fits after": 2,
+        "Steps (median) before": 16000,
+        "Steps (median) after": 2005,
+        "Seconds (median) before": 200.0,
+        "Seconds (median) after": 60.5,
+        "Samples/s before": 10.0,
+        "Samples/s after": pytest.approx(2400 / 121),
+        "Clock before": "wall",
+        "Clock after": "processor, wall",
+    }
 
 
 def test_a_diverged_training_says_why_and_which_state_was_kept():

@@ -4,8 +4,9 @@ stored cells, and how a refit moved a row's error (``kkl-bench trainings``).
 Every training of a learned row records in its fit report the steps it ran, why it
 stopped (``plateau``, ``cap`` or ``diverged``; nothing for a training from before the
 plateau rule) and the step whose state it kept (:mod:`kkl_bench.support.convergence`
-finds them). The cells a fit scored share its report, so a fit is counted once: by
-row, system, seed and the report itself.
+finds them), and in ``spent`` the steps, samples and seconds of each of its phases. The
+cells a fit scored share its report, so a fit is counted once: by row, system, seed and
+the report itself.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from kkl_bench.analysis.summary import REGIME_TITLES, in_paper_order
+from kkl_bench.run.results import recorded_seconds
 from kkl_bench.support.convergence import (
     DIVERGED,
     NO,
@@ -304,4 +306,112 @@ def rmse_change(before: pd.DataFrame, after: pd.DataFrame, by_regime: bool = Fal
             "before": "RMSE before",
             "after": "RMSE after",
         }
+    )
+
+
+PROCESSOR, WALL = "processor", "wall"
+"""The clocks a fit's seconds are read on (:func:`~kkl_bench.run.results.recorded_seconds`):
+its processor time where every phase recorded it, else wall time, which counts whatever
+else shared the machine."""
+
+
+FIT_COST_TEXT = (
+    "What each row's fits spent, before and after (read from their fit reports' `spent`, "
+    "each fit once; a KKL row's fit includes the Phase 1 it trained or loaded): the median "
+    "fit's optimizer steps and seconds, and the training samples per second over all its "
+    "fits. Seconds are processor time where every phase of a fit recorded it, else wall "
+    "time, which counts whatever else ran on the machine (`Clock`)."
+)
+
+
+def fit_costs(cells: pd.DataFrame) -> pd.DataFrame:
+    """One row per distinct fit behind ``cells`` that recorded what it spent
+    (``fit_report.spent``): ``estimator``, ``system``, ``seed``, and over its phases
+    ``steps`` (optimizer steps), ``samples`` (training samples seen), ``seconds`` and the
+    ``clock`` they were read on (:data:`PROCESSOR` or :data:`WALL`). A phase that ran no
+    step (a row without a second phase) is left out."""
+    records, seen = [], set()
+    for cell in cells.itertuples(index=False):
+        report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
+        phases = [
+            phase
+            for phase in (report.get("spent") or {}).values()
+            if isinstance(phase, dict) and phase.get("steps", 0) > 0
+        ]
+        if not phases:
+            continue
+        fit = (cell.estimator, cell.system, cell.seed, json.dumps(phases, sort_keys=True))
+        if fit in seen:
+            continue
+        seen.add(fit)
+        on_processor = all(
+            phase.get("device", "cpu") == "cpu" and "processor_seconds" in phase for phase in phases
+        )
+        records.append(
+            {
+                "estimator": cell.estimator,
+                "system": cell.system,
+                "seed": cell.seed,
+                "steps": sum(phase.get("steps", 0) for phase in phases),
+                "samples": sum(phase.get("samples", 0) for phase in phases),
+                "seconds": sum(recorded_seconds(phase) for phase in phases),
+                "clock": PROCESSOR if on_processor else WALL,
+            }
+        )
+    columns = ["estimator", "system", "seed", "steps", "samples", "seconds", "clock"]
+    return pd.DataFrame(records, columns=columns)
+
+
+def fit_cost_change(before: pd.DataFrame, after: pd.DataFrame) -> pd.DataFrame:
+    """Per row and system that both ``before`` and ``after`` (cells of two results
+    folders, a refit's before and after) hold fits of (:func:`fit_costs`): how many fits
+    each has, the median fit's steps and seconds, the samples per second over all its
+    fits (their samples over their seconds: the training's throughput), and the clock of
+    each side's seconds (``processor, wall`` where its fits differ)."""
+
+    def per_row(cells: pd.DataFrame) -> pd.DataFrame:
+        return (
+            fit_costs(cells)
+            .groupby(["estimator", "system"], sort=False)
+            .agg(
+                fits=("seed", "size"),
+                steps=("steps", lambda steps: round(steps.median())),
+                seconds=("seconds", "median"),
+                samples=("samples", "sum"),
+                total_seconds=("seconds", "sum"),
+                clock=("clock", lambda clocks: ", ".join(sorted(set(clocks)))),
+            )
+            .assign(throughput=lambda rows: rows["samples"] / rows["total_seconds"])
+            .drop(columns=["samples", "total_seconds"])
+        )
+
+    both = per_row(before).merge(
+        per_row(after), left_index=True, right_index=True, suffixes=(" before", " after")
+    )
+    order = [
+        f"{column} {side}"
+        for column in ("fits", "steps", "seconds", "throughput", "clock")
+        for side in ("before", "after")
+    ]
+    headers = {
+        "fits": "Fits",
+        "steps": "Steps (median)",
+        "seconds": "Seconds (median)",
+        "throughput": "Samples/s",
+        "clock": "Clock",
+    }
+    return (
+        both[order]
+        .reset_index()
+        .rename(
+            columns={
+                "estimator": "Row",
+                "system": "System",
+                **{
+                    f"{column} {side}": f"{header} {side}"
+                    for column, header in headers.items()
+                    for side in ("before", "after")
+                },
+            }
+        )
     )

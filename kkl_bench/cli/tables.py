@@ -69,7 +69,8 @@ def add_arguments(parsers: dict[str, argparse.ArgumentParser]) -> None:
         "With --before, each row's mean RMSE per system (and regime, with --by-regime) "
         "against another results folder's, on the cells both scored (a refit's before and "
         "after); a cell with a diverged trajectory in either is left out of both means and "
-        "counted."
+        "counted; and what each row's fits spent in each (the median fit's steps and "
+        "seconds, samples per second, and the clock its seconds were read on)."
     )
     add_reading_arguments(fits)
     fits.add_argument(
@@ -154,6 +155,13 @@ def print_trainings(args: argparse.Namespace) -> int:
         before = of_track(load_results(args.before, profile=results["profile"].iloc[0]), args.track)
         change = trainings.rmse_change(before, results, by_regime=args.by_regime)
         print("\n" + markdown.table(Table(change, floatfmt=".4g")))
+        costs = trainings.fit_cost_change(before, results)
+        print(
+            "\n"
+            + trainings.FIT_COST_TEXT
+            + "\n\n"
+            + markdown.table(Table(costs, floatfmt=",.0f", intfmt=","))
+        )
     elif args.by_regime:
         raise ValueError("--by-regime compares with --before DIR; name the folder to compare with")
     return exit_status(args, damaged)

@@ -28,7 +28,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
 from filelock import FileLock, Timeout
 
 from kkl_bench.support.provenance import provenance
@@ -274,35 +273,21 @@ def ledger_summary(ledger: dict[str, Any]) -> dict[str, Any] | None:
 def _core_hours_per_row(jobs: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     """Per row of the ledger's ``jobs``: jobs, cells, core-hours measured and estimated,
     the costliest system and its core-hours; the row that took most first."""
-    frame = pd.DataFrame(
-        [
-            {
-                "row": key_parts(key)[0],
-                "system": key_parts(key)[1],
-                "cells": record["cells"],
-                "core_hours": record["seconds"] / 3600,
-                "estimated_core_hours": record["estimate_s"] / 3600,
-            }
-            for key, record in jobs.items()
-        ]
-    )
-    per_system = frame.groupby(["row", "system"], sort=False)["core_hours"].sum()
-    costliest = (
-        per_system.sort_values(ascending=False, kind="stable")
-        .groupby(level="row")
-        .head(1)
-        .reset_index(level="system")
-        .set_axis(["costliest_system", "costliest_core_hours"], axis="columns")
-    )
-    rows = (
-        frame.groupby("row", sort=False)
-        .agg(
-            jobs=("cells", "size"),
-            cells=("cells", "sum"),
-            core_hours=("core_hours", "sum"),
-            estimated_core_hours=("estimated_core_hours", "sum"),
+    rows: dict[str, dict[str, Any]] = {}
+    per_system: dict[str, dict[str, float]] = {}
+    for key, record in jobs.items():
+        row, system, _, _ = key_parts(key)
+        totals = rows.setdefault(
+            row, {"row": row, "jobs": 0, "cells": 0, "core_hours": 0.0, "estimated_core_hours": 0.0}
         )
-        .join(costliest)
-        .sort_values("core_hours", ascending=False, kind="stable")
-    )
-    return rows.reset_index().to_dict("records")
+        totals["jobs"] += 1
+        totals["cells"] += record["cells"]
+        totals["core_hours"] += record["seconds"] / 3600
+        totals["estimated_core_hours"] += record["estimate_s"] / 3600
+        systems = per_system.setdefault(row, {})
+        systems[system] = systems.get(system, 0.0) + record["seconds"] / 3600
+    for row, totals in rows.items():
+        system = max(per_system[row], key=per_system[row].get)
+        totals["costliest_system"] = system
+        totals["costliest_core_hours"] = per_system[row][system]
+    return sorted(rows.values(), key=lambda totals: -totals["core_hours"])
