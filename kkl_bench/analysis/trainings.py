@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from kkl_bench.analysis.summary import REGIME_TITLES, in_paper_order
-from kkl_bench.run.results import recorded_seconds
+from kkl_bench.run.results import recorded_seconds, records_processor_time
 from kkl_bench.support.convergence import (
     DIVERGED,
     NO,
@@ -61,15 +63,10 @@ def training_records(cells: pd.DataFrame) -> pd.DataFrame:
     the plateau rule records neither its steps nor a best step nor halvings (NaN): its
     steps are read as its curve's last measurement's, and it kept its last step
     (protocol 6.5)."""
-    records, seen = [], set()
-    for cell in cells.itertuples(index=False):
-        report = cell.fit_report
+    records = []
+    for cell, report in distinct_fits(cells):
         if not trained(report):
             continue
-        fit = (cell.estimator, cell.system, cell.seed, json.dumps(report, sort_keys=True))
-        if fit in seen:
-            continue
-        seen.add(fit)
         for path, training in trainings(report):
             curve = training["validation_curve"]
             steps = training.get("steps", curve[-1][0] if curve else np.nan)
@@ -91,6 +88,21 @@ def training_records(cells: pd.DataFrame) -> pd.DataFrame:
                 }
             )
     return pd.DataFrame(records, columns=TRAINING_COLUMNS)
+
+
+def distinct_fits(cells: pd.DataFrame) -> Iterator[tuple[Any, dict]]:
+    """Each distinct fit behind ``cells`` once, as its first cell and its fit report: the
+    cells a fit scored share its report, so a fit is known by its row, system, seed and
+    the report itself. Cells without a report are skipped."""
+    seen = set()
+    for cell in cells.itertuples(index=False):
+        report = cell.fit_report
+        if not isinstance(report, dict):
+            continue
+        fit = (cell.estimator, cell.system, cell.seed, json.dumps(report, sort_keys=True))
+        if fit not in seen:
+            seen.add(fit)
+            yield cell, report
 
 
 def divergence(training: dict) -> str:
@@ -330,9 +342,8 @@ def fit_costs(cells: pd.DataFrame) -> pd.DataFrame:
     ``steps`` (optimizer steps), ``samples`` (training samples seen), ``seconds`` and the
     ``clock`` they were read on (:data:`PROCESSOR` or :data:`WALL`). A phase that ran no
     step (a row without a second phase) is left out."""
-    records, seen = [], set()
-    for cell in cells.itertuples(index=False):
-        report = cell.fit_report if isinstance(cell.fit_report, dict) else {}
+    records = []
+    for cell, report in distinct_fits(cells):
         phases = [
             phase
             for phase in (report.get("spent") or {}).values()
@@ -340,13 +351,7 @@ def fit_costs(cells: pd.DataFrame) -> pd.DataFrame:
         ]
         if not phases:
             continue
-        fit = (cell.estimator, cell.system, cell.seed, json.dumps(phases, sort_keys=True))
-        if fit in seen:
-            continue
-        seen.add(fit)
-        on_processor = all(
-            phase.get("device", "cpu") == "cpu" and "processor_seconds" in phase for phase in phases
-        )
+        on_processor = all(records_processor_time(phase) for phase in phases)
         records.append(
             {
                 "estimator": cell.estimator,

@@ -217,16 +217,15 @@ def following(
     bar: tqdm, measure: Callable[[], tuple[float, float]], every_s: float
 ) -> Iterator[Callable[[], None]]:
     """Set ``bar``'s position and total to ``measure()`` (seconds of work done, and in
-    all) every ``every_s`` seconds while the block runs, for work whose progress is
-    measured rather than counted and whose total grows where a job takes longer than
-    expected; yields the function that does it at once (after a job ends)."""
+    all, at least the work done) every ``every_s`` seconds while the block runs, for
+    work whose progress is measured rather than counted and whose total grows where a
+    job takes longer than expected; yields the function that does it at once (after a
+    job ends)."""
     lock, stop = threading.Lock(), threading.Event()
 
     def update() -> None:
         with lock:
-            done, total = measure()
-            bar.total = max(total, done)
-            bar.n = done
+            bar.n, bar.total = measure()
             bar.refresh()
 
     def follow() -> None:

@@ -8,11 +8,12 @@ would run it. Nothing in the source folder is written. A job's cost is estimated
 the source cells' own records (the training seconds stored with their models, the
 Phase-1 models the KKL rows share counted once, and their scoring time), so the plan
 states its core-hours before it starts, and the progress bar counts processor seconds
-of work (:class:`WorkDone`), not cells. A job is a fit (it trains a model) or scores only (its models are
-trained by an earlier job, or already, for cells of other tracks). A resumed
-regeneration also says how many times their estimates the jobs it finished took, and
-counts the training of each row's remaining jobs at its row's rate on the job's track
-where one of its jobs there finished, else at its row's (:func:`measured_rates`).
+of work (:class:`WorkDone`), not cells. A job is a fit (it trains a model) or scores
+only (its models are trained by an earlier job, or already, for cells of other
+tracks). A resumed regeneration also says how many times their estimates the jobs it
+finished took, and counts the training of each row's remaining jobs at its row's rate
+on the job's track where one of its jobs there finished, else at its row's
+(:func:`measured_rates`).
 
 The run is resumable like ``kkl-bench run``: cells already in the target folder are
 skipped, and a killed training continues from its checkpoint in the model cache. Each

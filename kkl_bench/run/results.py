@@ -337,11 +337,18 @@ def mean_fit_seconds(cells: pd.DataFrame) -> float:
     return float(np.mean(seconds)) if seconds else math.nan
 
 
+def records_processor_time(phase: dict) -> bool:
+    """Whether one training phase (a record of a fit report's ``spent``) trained on the
+    CPU and recorded its processor time (its core-seconds, whatever else ran on the
+    machine), which :func:`recorded_seconds` then reads instead of its wall time."""
+    return phase.get("device", "cpu") == "cpu" and "processor_seconds" in phase
+
+
 def recorded_seconds(phase: dict) -> float:
     """The time one training phase took (s; a record of a fit report's ``spent``): its
-    processor time where it trained on the CPU and recorded it (its core-seconds, whatever
-    else ran on the machine), else its wall time; NaN if it recorded neither."""
-    if phase.get("device", "cpu") == "cpu" and "processor_seconds" in phase:
+    processor time where it recorded it (:func:`records_processor_time`), else its wall
+    time; NaN if it recorded neither."""
+    if records_processor_time(phase):
         return phase["processor_seconds"]
     return phase.get("seconds", math.nan)
 
